@@ -1,0 +1,418 @@
+"""Stereo disparity with Shao et al.'s post-processing, reprojection and the coarse cloud.
+
+Pipeline (paper 002, Shao, Yang, Wang, section II-A/B; paper 000, Kolter et al., section II):
+
+1. **Normalisation** of both images (:func:`normalise`) to reduce the luminance difference
+   between the cameras before matching. ``'meanstd'`` (default) maps each image to a fixed mean
+   and standard deviation, which cancels any gain and offset difference exactly; ``'minmax'``
+   stretches to [0, 255]; ``'equalize'`` is histogram equalisation; ``'none'`` skips it.
+2. **SAD block matching** (eq. 1) over ``[min_disparity, min_disparity + num_disparities)``
+   with OpenCV's ``StereoBM`` (:class:`StereoMatcher`), which *is* winner-take-all SAD over a
+   square ``m x m`` window on pre-filtered images. Its own validity filters (texture threshold,
+   uniqueness ratio, speckle filter) default to off, so that the paper's post-processing is what
+   removes mismatches; each can be switched back on from the config.
+3. **Row outlier removal** (section II-B-1, :func:`remove_row_outliers`): for every row, count
+   how often each disparity value occurs; the pixels whose value occurs fewer than
+   ``outlier_min_count`` times in their row are mismatches and are blanked (NaN). Disparities
+   are sub-pixel, so "value" means the disparity rounded to the nearest integer pixel.
+4. **Area filling** (section II-B-2, :func:`fill_rows`): every blank pixel ``A`` is classified
+   by the relation of Fig. 3 with its left and right neighbours in the same row and Rules 1-4
+   are applied (see below).
+5. **Reprojection** (:func:`disparity_to_points`) to an organized ``(H, W, 3)`` cloud in the
+   left camera's optical frame, NaN where there is no disparity, and a **coarse cloud**
+   (:func:`coarse_subsample`) that keeps every ``step``-th pixel in both image directions,
+   the uniformly sampled low-resolution model paper 000 aligns with ICP.
+
+Our reading of Fig. 3 (the figure is not in the text we have)
+--------------------------------------------------------------
+The prose says: ``A`` is the blank pixel of interest, ``A1`` and ``A2`` are two other blank
+pixels, ``B``, ``B1`` and ``B2`` are pixels with a valid disparity; (a) and (b) are for a blank
+pixel at the beginning of the row, (c) and (d) at its end, (e)-(h) in the middle. Rules:
+(a), (c), (e) leave ``A`` alone; (b), (f) take the right pixel; (d), (g) take the left pixel;
+(h) takes the mean of left and right. The only assignment of neighbour patterns consistent with
+those names and rules is (row drawn left to right, ``|`` = image border)::
+
+    (a)  | A  A1        first pixel, right neighbour blank      -> Rule 1: leave alone
+    (b)  | A  B         first pixel, right neighbour valid      -> Rule 2: take right (B)
+    (c)  A1 A  |        last pixel, left neighbour blank        -> Rule 1: leave alone
+    (d)  B  A  |        last pixel, left neighbour valid        -> Rule 3: take left (B)
+    (e)  A1 A  A2       both neighbours blank                   -> Rule 1: leave alone
+    (f)  A1 A  B        left blank, right valid                 -> Rule 2: take right (B)
+    (g)  B  A  A1       left valid, right blank                 -> Rule 3: take left (B)
+    (h)  B1 A  B2       both neighbours valid                   -> Rule 4: (B1 + B2) / 2
+
+(e) uses the two other blank pixels ``A1``, ``A2`` and (h) the two valid pixels ``B1``, ``B2``,
+which is why the paper names them. All blank pixels are classified first and the rules are then
+applied at once (a Jacobi step, not a left-to-right scan): with a sequential scan the left
+neighbour of every middle pixel would already be filled and cases (e) and (f) could never occur,
+so the paper's rules only make sense on the classification of the unfilled row. One pass thus
+fills gaps of one and two pixels completely and shrinks longer gaps by one pixel at each end;
+``fill_passes`` > 1 repeats the step (the paper does one). The paper's per-row count ``N_i`` of
+blank pixels only lets it skip rows without any; the vectorised form needs no such shortcut.
+
+Image convention: pixel ``(u, v)`` = (column, row); disparity ``d = u_left - u_right`` [px].
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Optional, Tuple
+
+import cv2
+import numpy as np
+
+from terrain_perception.camera import StereoCamera
+from terrain_perception.config import param
+
+NORMALISATIONS = ('none', 'meanstd', 'minmax', 'equalize')
+PREFILTERS = ('xsobel', 'normalized_response')
+
+
+class StereoInputError(ValueError):
+    """A stereo pair the pipeline refuses; ``key`` names the problem for counters."""
+
+    def __init__(self, key: str, message: str) -> None:
+        super().__init__(message)
+        self.key = key
+
+
+@dataclass(frozen=True)
+class StereoConfig:
+    """Parameters of the stereo pipeline (matching, post-processing, reprojection)."""
+
+    num_disparities: int = param(64, 'disparity search range [px]; a multiple of 16', 16, 512)
+    min_disparity: int = param(0, 'smallest disparity searched [px]', -128, 256)
+    block_size_px: int = param(15, 'SAD window size m [px], odd', 5, 51)
+    normalisation: str = param('meanstd', 'image normalisation before matching',
+                               choices=NORMALISATIONS)
+    prefilter: str = param('xsobel', 'StereoBM pre-filter', choices=PREFILTERS)
+    prefilter_cap: int = param(31, 'StereoBM pre-filter clip value [grey levels]', 1, 63)
+    texture_threshold: int = param(0, 'StereoBM: minimum window texture, 0 = off', 0, 10000)
+    uniqueness_ratio: int = param(0, 'StereoBM: best-vs-second margin [%], 0 = off', 0, 100)
+    speckle_window_px: int = param(0, 'StereoBM speckle filter region size [px], 0 = off',
+                                   0, 10000)
+    speckle_range_px: int = param(2, 'StereoBM speckle filter disparity range [px]', 0, 64)
+    outlier_removal: bool = param(True, 'row-histogram outlier removal (Shao II-B-1)')
+    outlier_min_count: int = param(
+        12, 'a disparity value (rounded to 1 px) occurring fewer times than this in its row '
+        'marks its pixels as mismatches [px]', 1, 10000)
+    area_filling: bool = param(True, 'eight-relation row area filling (Shao II-B-2)')
+    fill_passes: int = param(1, 'repetitions of the area-filling step (paper: 1)', 1, 64)
+    max_depth_m: float = param(6.0, 'points farther than this along z are dropped [m]',
+                               0.01, 1000.0)
+    coarse_step_px: int = param(8, 'pixel stride of the coarse cloud in both directions [px]',
+                                1, 256)
+    min_contrast: float = param(2.0, 'images whose grey-level standard deviation is below '
+                                'this are refused as blank [grey levels]', 0.0, 128.0)
+    max_clipped_fraction: float = param(0.95, 'images with more than this share of pixels at '
+                                        '0 or 255 are refused as black/saturated', 0.0, 1.0)
+
+    def __post_init__(self) -> None:
+        if self.num_disparities % 16:
+            raise ValueError(f'StereoConfig.num_disparities must be a multiple of 16, '
+                             f'got {self.num_disparities}')
+        if self.block_size_px % 2 == 0:
+            raise ValueError(f'StereoConfig.block_size_px must be odd, got {self.block_size_px}')
+
+
+@dataclass(frozen=True)
+class StereoFrame:
+    """Result of :meth:`StereoPipeline.process`.
+
+    Attributes:
+        disparity: ``(H, W)`` float32 [px], NaN where invalid.
+        points: ``(H, W, 3)`` float32 organized cloud in the left camera optical frame [m],
+            NaN where invalid.
+        coarse: organized coarse cloud ``(ceil(H/s), ceil(W/s), 3)`` float32 [m].
+    """
+
+    disparity: np.ndarray
+    points: np.ndarray
+    coarse: np.ndarray
+
+
+# --------------------------------------------------------------------------- input checks
+
+def to_gray(image: np.ndarray, channel_order: str = 'rgb') -> np.ndarray:
+    """``(H, W)`` uint8 grey image from a uint8 mono ``(H, W)`` / ``(H, W, 1)`` or colour
+    ``(H, W, 3)`` image whose channels are in ``channel_order`` ('rgb' or 'bgr').
+
+    Raises:
+        StereoInputError: ``bad_encoding`` for any other dtype or shape.
+    """
+    img = np.asarray(image)
+    if img.dtype != np.uint8:
+        raise StereoInputError('bad_encoding', f'stereo images must be 8-bit, got dtype '
+                                               f'{img.dtype}')
+    if img.ndim == 3 and img.shape[2] == 1:
+        img = img[..., 0]
+    if img.ndim == 2:
+        return np.ascontiguousarray(img)
+    if img.ndim == 3 and img.shape[2] == 3:
+        if channel_order not in ('rgb', 'bgr'):
+            raise ValueError(f'channel_order must be rgb or bgr, got {channel_order!r}')
+        code = cv2.COLOR_RGB2GRAY if channel_order == 'rgb' else cv2.COLOR_BGR2GRAY
+        return cv2.cvtColor(np.ascontiguousarray(img), code)
+    raise StereoInputError('bad_encoding', f'stereo images must be (H, W) or (H, W, 3), '
+                                           f'got shape {img.shape}')
+
+
+def check_pair(left: np.ndarray, right: np.ndarray, config: StereoConfig) -> None:
+    """Refuse a grey pair that cannot give a meaningful disparity.
+
+    Raises:
+        StereoInputError: ``size_mismatch`` (different shapes), ``too_small`` (narrower than
+            the search range plus a window), ``blank_image`` (no contrast, e.g. all black),
+            ``saturated_image`` / ``black_image`` (mostly clipped pixels).
+    """
+    if left.shape != right.shape:
+        raise StereoInputError('size_mismatch', f'left image is {left.shape}, right image is '
+                                                f'{right.shape}')
+    h, w = left.shape[:2]
+    need = config.num_disparities + max(config.min_disparity, 0) + config.block_size_px
+    if w < need or h < config.block_size_px:
+        raise StereoInputError('too_small', f'image {w}x{h} px is too small for '
+                                            f'{config.num_disparities} disparities and a '
+                                            f'{config.block_size_px} px window')
+    for side, img in (('left', left), ('right', right)):
+        # A 4x subsample is plenty to decide whether an image is blank or clipped.
+        sub = img[::4, ::4]
+        n = sub.size
+        black = np.count_nonzero(sub == 0) / n
+        white = np.count_nonzero(sub == 255) / n
+        if white > config.max_clipped_fraction:
+            raise StereoInputError('saturated_image', f'{side} image is saturated: '
+                                                      f'{100 * white:.0f}% of pixels at 255')
+        if black > config.max_clipped_fraction:
+            raise StereoInputError('black_image', f'{side} image is black: '
+                                                  f'{100 * black:.0f}% of pixels at 0')
+        std = float(sub.std())
+        if std < config.min_contrast:
+            raise StereoInputError('blank_image', f'{side} image has no contrast (grey-level '
+                                                  f'std {std:.2f} < {config.min_contrast})')
+
+
+# --------------------------------------------------------------------------- pipeline steps
+
+def normalise(image: np.ndarray, method: str = 'meanstd') -> np.ndarray:
+    """Normalised uint8 grey image (``method`` in ``NORMALISATIONS``)."""
+    if method == 'none':
+        return image
+    if method == 'meanstd':
+        mean, std = cv2.meanStdDev(image)
+        alpha = 48.0 / max(float(std[0, 0]), 1e-3)
+        beta = 128.0 - alpha * float(mean[0, 0])
+        # addWeighted saturates to [0, 255], unlike a numpy cast.
+        return cv2.addWeighted(image, alpha, image, 0.0, beta, dtype=cv2.CV_8U)
+    if method == 'minmax':
+        return cv2.normalize(image, None, 0, 255, cv2.NORM_MINMAX, dtype=cv2.CV_8U)
+    if method == 'equalize':
+        return cv2.equalizeHist(image)
+    raise ValueError(f'unknown normalisation {method!r} (known: {", ".join(NORMALISATIONS)})')
+
+
+class StereoMatcher:
+    """SAD block matching (Shao eq. 1) by ``cv2.StereoBM`` configured from a StereoConfig."""
+
+    def __init__(self, config: StereoConfig) -> None:
+        self.config = config
+        bm = cv2.StereoBM.create(config.num_disparities, config.block_size_px)
+        bm.setMinDisparity(config.min_disparity)
+        bm.setPreFilterType(cv2.STEREO_BM_PREFILTER_XSOBEL if config.prefilter == 'xsobel'
+                            else cv2.STEREO_BM_PREFILTER_NORMALIZED_RESPONSE)
+        bm.setPreFilterCap(config.prefilter_cap)
+        bm.setTextureThreshold(config.texture_threshold)
+        bm.setUniquenessRatio(config.uniqueness_ratio)
+        bm.setSpeckleWindowSize(config.speckle_window_px)
+        bm.setSpeckleRange(config.speckle_range_px * 16)
+        self._bm = bm
+
+    def match_fixed(self, left: np.ndarray, right: np.ndarray) -> np.ndarray:
+        """StereoBM's raw int16 output (disparity x 16; ``(min_disparity - 1) * 16`` = none)."""
+        return self._bm.compute(left, right)
+
+    def match(self, left: np.ndarray, right: np.ndarray) -> np.ndarray:
+        """Disparity ``(H, W)`` float32 [px] of two grey uint8 images, NaN where none."""
+        return fixed_to_float(self.match_fixed(left, right), self.config.min_disparity)
+
+
+def fixed_to_float(disp16: np.ndarray, min_disparity: int = 0) -> np.ndarray:
+    """OpenCV's 4-bit fixed-point disparity to float32 [px] with NaN for 'no match'."""
+    d = disp16.astype(np.float32)
+    d *= 1.0 / 16.0
+    d[disp16 < min_disparity * 16] = np.nan
+    return d
+
+
+def remove_row_outliers(disparity: np.ndarray, min_count: int,
+                        min_disparity: Optional[int] = None,
+                        num_disparities: Optional[int] = None) -> np.ndarray:
+    """Shao II-B-1: blank the pixels whose (rounded) disparity is rare in their row.
+
+    Args:
+        disparity: ``(H, W)`` float [px], NaN = blank.
+        min_count: a value occurring fewer than this many times in its row is a mismatch.
+        min_disparity, num_disparities: the value range (taken from the data if omitted).
+
+    Returns:
+        A float32 copy with the mismatches set to NaN.
+    """
+    d = np.asarray(disparity, dtype=np.float32)
+    if d.ndim != 2:
+        raise ValueError(f'disparity must be (H, W), got shape {d.shape}')
+    out = d.copy()
+    valid = np.isfinite(d)
+    if not valid.any():
+        return out
+    h, w = d.shape
+    if min_disparity is None or num_disparities is None:
+        lo = int(np.floor(np.nanmin(d)))
+        span = int(np.ceil(np.nanmax(d))) - lo + 1
+    else:
+        lo, span = int(min_disparity), int(num_disparities) + 1
+    # Bin 0 of each row collects the blanks; bins 1..span the rounded disparity values.
+    nb = span + 1
+    idx = np.zeros((h, w), dtype=np.int64)
+    vals = np.rint(d[valid]).astype(np.int64) - lo + 1
+    np.clip(vals, 1, span, out=vals)
+    idx[valid] = vals
+    idx += (np.arange(h, dtype=np.int64) * nb)[:, None]
+    counts = np.bincount(idx.ravel(), minlength=h * nb)
+    rare = counts[idx] < min_count
+    out[rare & valid] = np.nan
+    return out
+
+
+def fill_rows(disparity: np.ndarray, passes: int = 1) -> np.ndarray:
+    """Shao II-B-2: area filling of blank (NaN) pixels by the eight relations of Fig. 3.
+
+    See the module docstring for the cases. Each pass classifies every blank pixel against the
+    row as it was at the start of the pass, then applies Rules 1-4.
+
+    Returns:
+        A float32 copy of ``disparity`` ``(H, W)`` [px] with the filled pixels set.
+    """
+    d = np.array(disparity, dtype=np.float32)
+    if d.ndim != 2:
+        raise ValueError(f'disparity must be (H, W), got shape {d.shape}')
+    if d.shape[1] < 2:
+        return d
+    for _ in range(int(passes)):
+        valid = np.isfinite(d)
+        left = np.full_like(d, np.nan)
+        left[:, 1:] = d[:, :-1]
+        right = np.full_like(d, np.nan)
+        right[:, :-1] = d[:, 1:]
+        lv = np.isfinite(left)    # False in column 0: no left neighbour (cases a, b)
+        rv = np.isfinite(right)   # False in the last column: no right neighbour (cases c, d)
+        blank = ~valid
+        take_right = blank & rv & ~lv       # (b), (f)  -> Rule 2
+        take_left = blank & lv & ~rv        # (d), (g)  -> Rule 3
+        take_mean = blank & lv & rv         # (h)       -> Rule 4
+        if not (take_right.any() or take_left.any() or take_mean.any()):
+            break                           # only (a), (c), (e) left: Rule 1
+        d[take_right] = right[take_right]
+        d[take_left] = left[take_left]
+        d[take_mean] = 0.5 * (left[take_mean] + right[take_mean])
+    return d
+
+
+def disparity_to_points(disparity: np.ndarray, stereo: StereoCamera,
+                        max_depth_m: float = np.inf,
+                        rays: Optional[np.ndarray] = None) -> np.ndarray:
+    """Organized cloud ``(H, W, 3)`` float32 in the left camera optical frame [m].
+
+    ``Z = fx * baseline / d``, ``X = (u - cx) Z / fx``, ``Y = (v - cy) Z / fy``. Pixels with
+    NaN or non-positive disparity, or farther than ``max_depth_m``, are NaN.
+
+    Args:
+        disparity: ``(H, W)`` [px] matching ``stereo.left``'s size.
+        stereo: the rectified pair.
+        max_depth_m: range cut-off along z [m].
+        rays: optional cached ``stereo.left.rays()`` as float32 (saves time per frame).
+    """
+    d = np.asarray(disparity, dtype=np.float32)
+    cam = stereo.left
+    if d.shape != (cam.height, cam.width):
+        raise ValueError(f'disparity is {d.shape}, camera is {cam.height}x{cam.width}')
+    if rays is None:
+        rays = cam.rays().astype(np.float32)
+    with np.errstate(divide='ignore', invalid='ignore'):
+        z = np.float32(cam.fx * stereo.baseline_m) / d
+    z[~(d > 0) | ~(z <= max_depth_m)] = np.nan
+    return rays * z[..., None]
+
+
+def coarse_subsample(points: np.ndarray, step: int) -> np.ndarray:
+    """Uniform subsample of an organized cloud: every ``step``-th pixel in rows and columns,
+    starting half a step in (paper 000, section II: the coarse model for ICP alignment).
+
+    Args:
+        points: ``(H, W, 3)`` organized cloud [m], NaN = invalid.
+        step: stride [px] >= 1.
+
+    Returns:
+        ``(ceil((H - step//2)/step), ceil((W - step//2)/step), 3)`` float32, still organized
+        and NaN where the sampled pixel is invalid.
+    """
+    pts = np.asarray(points)
+    if pts.ndim != 3 or pts.shape[2] != 3:
+        raise ValueError(f'points must be an organized (H, W, 3) cloud, got shape {pts.shape}')
+    step = int(step)
+    if step < 1:
+        raise ValueError(f'coarse step must be >= 1 px, got {step}')
+    o = step // 2
+    return np.ascontiguousarray(pts[o::step, o::step], dtype=np.float32)
+
+
+class StereoPipeline:
+    """Normalise, match, post-process and reproject one rectified pair.
+
+    Args:
+        config: the pipeline parameters.
+        stereo: the rectified camera pair (left intrinsics + baseline).
+    """
+
+    def __init__(self, config: StereoConfig, stereo: StereoCamera) -> None:
+        self.config = config
+        self.stereo = stereo
+        self.matcher = StereoMatcher(config)
+        self._rays = stereo.left.rays().astype(np.float32)
+
+    def prepare(self, left: np.ndarray, right: np.ndarray,
+                channel_order: str = 'rgb') -> Tuple[np.ndarray, np.ndarray]:
+        """Grey, checked, normalised pair; raises :class:`StereoInputError` on a bad pair."""
+        gl, gr = to_gray(left, channel_order), to_gray(right, channel_order)
+        check_pair(gl, gr, self.config)
+        cam = self.stereo.left
+        if gl.shape != (cam.height, cam.width):
+            raise StereoInputError('size_mismatch', f'images are {gl.shape[1]}x{gl.shape[0]}, '
+                                                    f'camera model is {cam.width}x{cam.height}')
+        method = self.config.normalisation
+        return normalise(gl, method), normalise(gr, method)
+
+    def disparity(self, left: np.ndarray, right: np.ndarray,
+                  channel_order: str = 'rgb') -> np.ndarray:
+        """Post-processed disparity ``(H, W)`` float32 [px], NaN where invalid."""
+        c = self.config
+        nl, nr = self.prepare(left, right, channel_order)
+        d = self.matcher.match(nl, nr)
+        return postprocess(d, c)
+
+    def process(self, left: np.ndarray, right: np.ndarray,
+                channel_order: str = 'rgb') -> StereoFrame:
+        """Disparity, organized fine cloud and coarse cloud of one pair."""
+        d = self.disparity(left, right, channel_order)
+        pts = disparity_to_points(d, self.stereo, self.config.max_depth_m, self._rays)
+        return StereoFrame(d, pts, coarse_subsample(pts, self.config.coarse_step_px))
+
+
+def postprocess(disparity: np.ndarray, config: StereoConfig) -> np.ndarray:
+    """The switchable post-processing of a float disparity map (outliers, then filling)."""
+    d = disparity
+    if config.outlier_removal:
+        d = remove_row_outliers(d, config.outlier_min_count, config.min_disparity,
+                                config.num_disparities)
+    if config.area_filling:
+        d = fill_rows(d, config.fill_passes)
+    return d
