@@ -1,0 +1,152 @@
+"""Analytic leg kinematics of a 3-DOF quadruped leg, vectorised over legs (and poses).
+
+Leg model (see :mod:`terrain_perception.robot_model`): the hip-abduction joint at
+``hip_offsets[leg]`` rotates about base x; the hip-flexion joint sits ``abduction_offset_m``
+outward and rotates about the leg's y; the knee ``thigh_length_m`` below it; the foot centre
+``shank_length_m`` below the knee. All zero = leg straight down; positive flexion swings the
+foot backward. In the leg plane (after abduction) the foot is at::
+
+    x' = -l1 sin(q1) - l2 sin(q1 + q2),   y' = side * d,   z' = -l1 cos(q1) - l2 cos(q1 + q2)
+
+and ``p_base = hip + Rx(q0) @ (x', y', z')``.
+
+Positions are foot-sphere centres in ``base_link`` [m]; angles [rad]. Joint arrays are
+``(..., 4, 3)`` = ``[..., leg, (abduction, flexion, knee)]``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from terrain_perception.robot_model import LEG_NAMES, LEG_SIDE, RobotModel
+
+_EPS_REACH = 1e-9    # [m] tolerance on reach checks (numerical round-off only)
+_EPS_LIMIT = 1e-9    # [rad] tolerance on joint limits
+
+
+def _leg_arrays(model: RobotModel, q_or_p: np.ndarray, what: str) -> np.ndarray:
+    a = np.asarray(q_or_p, dtype=np.float64)
+    if a.shape[-2:] != (4, 3):
+        raise ValueError(f'{what} must have shape (..., 4, 3), got {a.shape}')
+    return a
+
+
+def forward(model: RobotModel, q: np.ndarray) -> np.ndarray:
+    """Foot centres ``(..., 4, 3)`` in base_link [m] from joint angles ``(..., 4, 3)`` [rad]."""
+    q = _leg_arrays(model, q, 'joint angles')
+    l1, l2 = model.thigh_length_m, model.shank_length_m
+    q0, q1, q2 = q[..., 0], q[..., 1], q[..., 2]
+    xp = -l1 * np.sin(q1) - l2 * np.sin(q1 + q2)
+    yp = np.broadcast_to(LEG_SIDE * model.abduction_offset_m, xp.shape)
+    zp = -l1 * np.cos(q1) - l2 * np.cos(q1 + q2)
+    c0, s0 = np.cos(q0), np.sin(q0)
+    return np.stack([xp, c0 * yp - s0 * zp, s0 * yp + c0 * zp], axis=-1) + model.hip_offsets
+
+
+def jacobian(model: RobotModel, q: np.ndarray) -> np.ndarray:
+    """``(..., 4, 3, 3)`` d(foot position in base_link)/d(joint angles), ``[leg, xyz, joint]``."""
+    q = _leg_arrays(model, q, 'joint angles')
+    l1, l2 = model.thigh_length_m, model.shank_length_m
+    q0, q1, q2 = q[..., 0], q[..., 1], q[..., 2]
+    s1, c1, s12, c12 = np.sin(q1), np.cos(q1), np.sin(q1 + q2), np.cos(q1 + q2)
+    yp = np.broadcast_to(LEG_SIDE * model.abduction_offset_m, q0.shape)
+    zp = -l1 * c1 - l2 * c12
+    c0, s0 = np.cos(q0), np.sin(q0)
+    J = np.zeros(q.shape[:-1] + (3, 3))
+    # d/dq0 of Rx(q0) @ (x', y', z')
+    J[..., 1, 0] = -s0 * yp - c0 * zp
+    J[..., 2, 0] = c0 * yp - s0 * zp
+    for col, (dx, dz) in ((1, (-l1 * c1 - l2 * c12, l1 * s1 + l2 * s12)),
+                          (2, (-l2 * c12, l2 * s12))):
+        J[..., 0, col] = dx
+        J[..., 1, col] = -s0 * dz
+        J[..., 2, col] = c0 * dz
+    return J
+
+
+@dataclass(frozen=True)
+class IKResult:
+    """Inverse kinematics outcome.
+
+    Attributes:
+        q: ``(..., 4, 3)`` joint angles [rad]; NaN for unreachable legs (never clamped).
+        ok: ``(..., 4)`` True where the target is reachable within the joint limits.
+        reasons: one message per unreachable leg (empty when all are reachable).
+    """
+
+    q: np.ndarray
+    ok: np.ndarray
+    reasons: tuple
+
+    @property
+    def all_ok(self) -> bool:
+        return bool(np.all(self.ok))
+
+
+def solve_ik(model: RobotModel, feet_base: np.ndarray) -> IKResult:
+    """Joint angles placing the foot centres at ``feet_base`` ``(..., 4, 3)`` [m, base_link].
+
+    Unreachable targets (too far, too close, inside the abduction offset, or needing a joint
+    outside its limits) get NaN angles and ``ok = False`` with a reason naming the leg.
+    """
+    p = _leg_arrays(model, feet_base, 'foot targets')
+    l1, l2 = model.thigh_length_m, model.shank_length_m
+    r = p - model.hip_offsets
+    x, y, z = r[..., 0], r[..., 1], r[..., 2]
+    d = np.broadcast_to(LEG_SIDE * model.abduction_offset_m, x.shape)
+    rho2 = y * y + z * z - d * d
+    in_plane = rho2 >= -_EPS_REACH
+    h = -np.sqrt(np.maximum(rho2, 0.0))
+    q0 = np.arctan2(z, y) - np.arctan2(h, d)
+    q0 = (q0 + np.pi) % (2.0 * np.pi) - np.pi
+    a, b = -x, -h
+    L2 = a * a + b * b
+    c2 = (L2 - l1 * l1 - l2 * l2) / (2.0 * l1 * l2)
+    reach = np.sqrt(L2)
+    too_far = reach > l1 + l2 + _EPS_REACH
+    too_close = reach < abs(l1 - l2) - _EPS_REACH
+    q2 = model.knee_sign * np.arccos(np.clip(c2, -1.0, 1.0))
+    q1 = np.arctan2(a, b) - np.arctan2(l2 * np.sin(q2), l1 + l2 * np.cos(q2))
+    q = np.stack([q0, q1, q2], axis=-1)
+    lo, hi = model.joint_limits[..., 0], model.joint_limits[..., 1]
+    out_of_limits = np.any((q < lo - _EPS_LIMIT) | (q > hi + _EPS_LIMIT), axis=-1)
+    ok = in_plane & ~too_far & ~too_close & ~out_of_limits
+    q = np.where(ok[..., None], q, np.nan)
+
+    reasons = []
+    if not np.all(ok):
+        flat_ok = ok.reshape(-1, 4)
+        checks = [(~in_plane, 'target inside the abduction offset circle'),
+                  (too_far, 'target beyond the leg length'),
+                  (too_close, 'target closer than |thigh - shank|'),
+                  (out_of_limits, 'solution outside the joint limits')]
+        flat_checks = [(c.reshape(-1, 4), msg) for c, msg in checks]
+        for idx, leg in zip(*np.nonzero(~flat_ok)):
+            why = next(msg for c, msg in flat_checks if c[idx, leg])
+            where = f'pose {idx} ' if flat_ok.shape[0] > 1 else ''
+            reasons.append(f'{where}leg {LEG_NAMES[leg]}: {why} '
+                           f'(target {np.round(p.reshape(-1, 4, 3)[idx, leg], 4).tolist()} m)')
+    return IKResult(q=q, ok=ok, reasons=tuple(reasons))
+
+
+def inverse(model: RobotModel, feet_base: np.ndarray) -> np.ndarray:
+    """Like :func:`solve_ik` but raises ValueError naming every unreachable leg."""
+    res = solve_ik(model, feet_base)
+    if not res.all_ok:
+        raise ValueError(f'{model.name}: unreachable foot targets: ' + '; '.join(res.reasons))
+    return res.q
+
+
+def feet_in_base(T_world_base: np.ndarray, feet_world: np.ndarray) -> np.ndarray:
+    """Express world foot positions ``(..., 3)`` in a base frame given ``T_world_base``."""
+    R, t = T_world_base[:3, :3], T_world_base[:3, 3]
+    return (np.asarray(feet_world, dtype=np.float64) - t) @ R
+
+
+def standing_joint_angles(model: RobotModel) -> np.ndarray:
+    """``(4, 3)`` joint angles of the nominal stance (foot contact points at nominal_feet)."""
+    feet = np.array(model.nominal_feet)
+    feet[:, 2] += model.foot_radius_m
+    return inverse(model, feet)

@@ -1,0 +1,1 @@
+"""pybullet simulation: world, robots, sensors (ROS-free)."""
