@@ -77,6 +77,7 @@ def test_plane_from_normal_orients_towards_camera():
     p = plane_from_normal([0, 2, 0], -1.0)    # 2y - 1 = 0: ground 0.5 m below a level y-down cam
     np.testing.assert_allclose(p.normal, [0, -1, 0])
     assert p.height_m == 0.5 and p.pitch_rad == 0.0
-    q = plane_from_normal([0, -np.sin(0.3), -np.cos(0.3)], -2.0)
-    assert q.d == 2.0 and np.isclose(q.pitch_rad, -0.3)
+    # Up seen from a camera pitched 0.3 rad down is (0, -cos, -sin); given flipped here.
+    q = plane_from_normal([0, np.cos(0.3), np.sin(0.3)], -2.0)
+    assert q.d == 2.0 and np.isclose(q.pitch_rad, 0.3)
     assert np.isclose(camera_pitch_from_pose(make_T(rot_x(0.0))), 0.0)
