@@ -1,0 +1,1 @@
+"""Benchmark suites: ``terrain-bench SUITE`` runs ``terrain_perception/bench/SUITE.py``."""

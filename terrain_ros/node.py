@@ -1,0 +1,82 @@
+"""Helpers every node shares: the Jazzy ``main()`` idiom and counted, rate-limited bad-input logs."""
+
+from __future__ import annotations
+
+import sys
+from collections import Counter
+from typing import Callable, Dict, Optional, Type
+
+import rclpy
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+
+from terrain_ros.env import apply_safe_defaults
+from terrain_ros.qos import RELIABLE_QOS
+
+
+def run_node(node_cls: Type[Node], args=None, **kwargs) -> int:
+    """Create ``node_cls`` and spin it until Ctrl-C / shutdown; the Jazzy idiom.
+
+    A configuration error at start-up (``ValueError``, e.g. a refused parameter) is printed as
+    one line and gives exit code 2 instead of a traceback.
+    """
+    apply_safe_defaults()
+    rclpy.init(args=args)
+    node = None
+    try:
+        node = node_cls(**kwargs)
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    except ValueError as exc:
+        print(f'{node_cls.__name__}: {exc}', file=sys.stderr)
+        return 2
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+    return 0
+
+
+class Counters:
+    """Named counters of dropped / rejected input, logged once per reason and published.
+
+    ``bump(key, reason)`` counts an event; the first occurrence of each key is logged as a
+    warning with its reason, later ones every ``log_every`` occurrences. ``publish()`` sends a
+    ``diagnostic_msgs/DiagnosticArray`` on ``~/diagnostics``.
+    """
+
+    def __init__(self, node: Node, log_every: int = 100,
+                 publish_topic: Optional[str] = '~/diagnostics') -> None:
+        self._node = node
+        self._log_every = max(1, int(log_every))
+        self.counts: Counter = Counter()
+        self.last_reason: Dict[str, str] = {}
+        self._pub = (node.create_publisher(DiagnosticArray, publish_topic, RELIABLE_QOS)
+                     if publish_topic else None)
+
+    def bump(self, key: str, reason: str = '', level: Callable | None = None) -> None:
+        self.counts[key] += 1
+        self.last_reason[key] = reason
+        n = self.counts[key]
+        if n == 1 or n % self._log_every == 0:
+            log = level or self._node.get_logger().warning
+            suffix = '' if n == 1 else f' ({n} times so far)'
+            log(f'{key}: {reason}{suffix}')
+
+    def __getitem__(self, key: str) -> int:
+        return self.counts[key]
+
+    def publish(self) -> None:
+        if self._pub is None:
+            return
+        status = DiagnosticStatus(name=self._node.get_fully_qualified_name(),
+                                  level=DiagnosticStatus.OK if not self.counts
+                                  else DiagnosticStatus.WARN,
+                                  message=', '.join(f'{k}={v}' for k, v in
+                                                    sorted(self.counts.items())) or 'ok')
+        status.values = [KeyValue(key=k, value=str(v)) for k, v in sorted(self.counts.items())]
+        msg = DiagnosticArray(status=[status])
+        msg.header.stamp = self._node.get_clock().now().to_msg()
+        self._pub.publish(msg)
