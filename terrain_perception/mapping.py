@@ -1,0 +1,746 @@
+"""Localisation against the terrain and the two terrain models (Kolter et al., section II).
+
+Each capture is a cloud in the camera-optical frame plus the dead-reckoning pose of the body
+(``T_odom_base``) at the capture's stamp. :class:`IcpMapper`:
+
+1. predicts the camera pose in ``map`` from dead reckoning and the current correction
+   ``T_map_odom`` (the paper: "a very reasonable initial guess simply by using dead reckoning");
+2. aligns a sparse, uniformly sub-sampled copy of the cloud to the **coarse model** with
+   point-to-plane ICP, ``E = sum(((R p_i + t - q_i) . n_i)^2)`` (Open3D's solver, robust kernel);
+3. rejects the alignment when its fitness is low, its residual high, or its correction much
+   larger than the drift dead reckoning can have accumulated since the last accepted capture
+   (then the prior is kept and the capture is not fused);
+4. fuses the full-resolution cloud into the **fine height map** (default 1 cm cells: per-cell
+   mean, min, max, count, variance, last-seen stamp, observed mask; NaN where empty) and its
+   sparse copy into the coarse model;
+5. keeps the capture's camera pose (the occlusion-fill node needs the lines of sight).
+
+Both models move with the robot: the fine map has a fixed size and is re-centred by whole cells,
+the coarse model keeps only points within a radius, so memory does not grow with distance.
+
+Frames: ``map`` (fixed, z up), ``odom`` (dead reckoning), ``base_link``, ``camera_optical``.
+Poses are 4x4 ``T_a_b`` (``p_a = T_a_b p_b``). Times are float seconds from message stamps;
+nothing here reads a clock.
+"""
+
+from __future__ import annotations
+
+import collections
+from dataclasses import dataclass, field
+from typing import Deque, Dict, Optional, Tuple
+
+import numpy as np
+import open3d as o3d
+from scipy.spatial.transform import Rotation, Slerp
+
+from terrain_perception.config import param
+from terrain_perception.grid import ELEVATION, OBSERVED, VARIANCE, GridMap
+from terrain_perception.transforms import angle_between, invert, transform_points
+
+MIN = 'min'
+MAX = 'max'
+COUNT = 'count'
+LAST_SEEN = 'last_seen'
+
+_REG = o3d.pipelines.registration
+
+
+@dataclass(frozen=True)
+class MapperConfig:
+    """Parameters of :class:`IcpMapper` (the ``icp_mapper`` node's parameters)."""
+
+    # ---- input clouds
+    min_range_m: float = param(0.05, 'nearest z-depth [m] of a cloud point used', 0.0, 10.0)
+    max_range_m: float = param(1.5, 'farthest z-depth [m] of a cloud point used', 0.1, 20.0)
+    min_points: int = param(200, 'fewest valid points a cloud needs', 10, 10_000_000)
+    # ---- coarse model / ICP
+    coarse_stride_px: int = param(4, 'pixel stride sub-sampling an organized cloud for ICP',
+                                  1, 64)
+    coarse_voxel_m: float = param(0.015, 'voxel size [m] of the ICP source and coarse model',
+                                  0.001, 0.5)
+    coarse_radius_m: float = param(1.5, 'coarse-model points farther than this [m] (x-y) '
+                                   'from the robot are dropped', 0.2, 50.0)
+    coarse_max_points: int = param(30000, 'cap on coarse-model points (newest kept)',
+                                   100, 10_000_000)
+    normal_radius_m: float = param(0.04, 'neighbourhood radius [m] for model normals',
+                                   0.002, 1.0)
+    normal_max_nn: int = param(20, 'max neighbours for a model normal', 3, 200)
+    icp_method: str = param('point_to_plane', 'ICP error metric (point_to_point is kept for '
+                            'comparison only)', choices=('point_to_plane', 'point_to_point'))
+    max_correspondence_m: float = param(0.04, 'ICP correspondence distance [m]', 0.001, 1.0)
+    max_iterations: int = param(30, 'ICP iterations', 1, 1000)
+    relative_fitness: float = param(1e-7, 'ICP stops when fitness changes less than this',
+                                    0.0, 1.0)
+    relative_rmse: float = param(1e-7, 'ICP stops when RMSE changes less than this', 0.0, 1.0)
+    robust_kernel: str = param('tukey', 'robust loss on point-to-plane residuals',
+                               choices=('none', 'huber', 'tukey', 'cauchy', 'gm', 'l1'))
+    kernel_scale_m: float = param(0.01, 'robust kernel scale [m]', 1e-5, 1.0)
+    # ---- guards
+    min_fitness: float = param(0.3, 'reject an alignment matching fewer source points than '
+                               'this fraction', 0.0, 1.0)
+    max_rmse_m: float = param(0.008, 'reject an alignment whose inlier RMSE [m] exceeds this',
+                              1e-5, 1.0)
+    max_correction_floor_m: float = param(0.02, 'correction [m] always allowed', 0.0, 10.0)
+    max_correction_per_m: float = param(0.15, 'extra correction [m] allowed per metre walked '
+                                        'since the last accepted capture', 0.0, 10.0)
+    max_rotation_floor_deg: float = param(2.0, 'rotation correction [deg] always allowed',
+                                          0.0, 180.0)
+    max_rotation_per_m_deg: float = param(8.0, 'extra rotation correction [deg] allowed per '
+                                          'metre walked', 0.0, 360.0)
+    fuse_rejected: bool = param(False, 'fuse captures whose alignment was rejected (at the '
+                                'prior pose) into the maps')
+    # ---- roll / pitch priors
+    use_gravity_prior: bool = param(False, 'level the prior with a measured up vector (IMU)')
+    use_ground_plane_prior: bool = param(False, 'level the prior with a RANSAC ground plane')
+    ground_plane_threshold_m: float = param(0.01, 'RANSAC inlier distance [m]', 1e-4, 1.0)
+    ground_plane_min_inliers: float = param(0.5, 'fraction of points the ground plane must '
+                                            'hold to be used', 0.0, 1.0)
+    max_level_error_deg: float = param(0.0, 'reject an alignment whose up axis differs from '
+                                       'the roll/pitch prior by more [deg]; 0 = no check',
+                                       0.0, 90.0)
+    # ---- fine map
+    fine_resolution_m: float = param(0.01, 'fine height-map cell size [m]', 0.001, 1.0)
+    fine_size_m: float = param(3.0, 'edge length [m] of the square fine map around the robot',
+                               0.1, 100.0)
+    fine_stride_px: int = param(1, 'pixel stride of the organized cloud fused into the fine map',
+                                1, 64)
+    fine_estimator: str = param('plane', 'cell height: mean of samples, or the cell-centre '
+                                'value of a per-cell least-squares plane',
+                                choices=('mean', 'plane'))
+    recenter_distance_m: float = param(0.5, 'move the maps when the robot is this far [m] '
+                                       'from the fine map centre', 0.0, 100.0)
+    max_capture_poses: int = param(200, 'capture poses kept with the map', 1, 100000)
+    stamp_tolerance_s: float = param(0.0, 'a cloud may be this much [s] older than the map',
+                                     0.0, 100.0)
+
+
+@dataclass
+class MapperUpdate:
+    """What one capture did.
+
+    Attributes:
+        accepted: the ICP alignment passed every guard (the first capture is accepted as is).
+        fused: the capture went into the maps.
+        reason: '' when accepted, else why the alignment was rejected.
+        T_map_base, T_map_camera: pose of the capture [4x4] (ICP's if accepted, else the prior).
+        T_map_base_prior: the dead-reckoning prediction.
+        T_map_odom: the correction after this capture.
+        fitness: Open3D's ICP fitness; inlier_rmse_m: point-to-plane RMSE [m] over the
+            correspondences (both NaN for the first capture).
+        correction_m, correction_deg: ICP pose minus prior (body position [m], rotation [deg]).
+        n_source, n_model: ICP source points and coarse-model points.
+    """
+
+    accepted: bool
+    fused: bool
+    reason: str
+    T_map_base: np.ndarray
+    T_map_camera: np.ndarray
+    T_map_base_prior: np.ndarray
+    T_map_odom: np.ndarray
+    fitness: float = float('nan')
+    inlier_rmse_m: float = float('nan')
+    correction_m: float = 0.0
+    correction_deg: float = 0.0
+    n_source: int = 0
+    n_model: int = 0
+
+
+def _check_T(T: np.ndarray, name: str) -> np.ndarray:
+    T = np.asarray(T, dtype=np.float64)
+    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+        raise ValueError(f'{name} must be a finite 4x4 transform')
+    R = T[:3, :3]
+    if np.abs(R.T @ R - np.eye(3)).max() > 1e-4 or np.linalg.det(R) < 0:
+        raise ValueError(f'{name} has a rotation that is not orthonormal')
+    return T
+
+
+def valid_points(cloud: np.ndarray, min_range_m: float = 0.0, max_range_m: float = np.inf,
+                 stride_px: int = 1) -> np.ndarray:
+    """Finite points ``(N, 3)`` float64 of a camera-frame cloud within a z-depth window.
+
+    Args: ``cloud`` ``(H, W, 3)`` organized (sub-sampled by ``stride_px``) or ``(N, 3)`` [m].
+    Raises ValueError naming the problem for a wrong shape.
+    """
+    cloud = np.asarray(cloud)
+    if cloud.ndim == 3 and cloud.shape[-1] == 3:
+        cloud = cloud[::stride_px, ::stride_px].reshape(-1, 3)
+    elif cloud.ndim == 2 and cloud.shape[-1] == 3:
+        cloud = cloud[::stride_px] if stride_px > 1 else cloud
+    else:
+        raise ValueError(f'a cloud must be (H, W, 3) or (N, 3), got shape {cloud.shape}')
+    if not np.issubdtype(cloud.dtype, np.floating):
+        raise ValueError(f'cloud coordinates must be floating point, got {cloud.dtype}')
+    pts = cloud.astype(np.float64, copy=False)
+    ok = np.all(np.isfinite(pts), axis=1) & (pts[:, 2] >= min_range_m) & (pts[:, 2] <= max_range_m)
+    return pts[ok]
+
+
+def level_rotation(R_map_camera: np.ndarray, up_camera: np.ndarray) -> np.ndarray:
+    """Smallest rotation of ``R_map_camera`` that makes ``up_camera`` (the world's up seen in
+    the camera frame) point along map +z; keeps the heading."""
+    up = np.asarray(up_camera, dtype=np.float64)
+    up = up / np.linalg.norm(up)
+    a = R_map_camera @ up
+    z = np.array([0.0, 0.0, 1.0])
+    axis = np.cross(a, z)
+    s = np.linalg.norm(axis)
+    if s < 1e-12:
+        return R_map_camera.copy()
+    ang = np.arctan2(s, float(a @ z))
+    return Rotation.from_rotvec(axis / s * ang).as_matrix() @ R_map_camera
+
+
+def ground_plane_up(points_camera: np.ndarray, threshold_m: float, min_inlier_ratio: float,
+                    seed: int = 0) -> Optional[np.ndarray]:
+    """Up direction (unit, camera frame) of the dominant plane of a cloud by RANSAC (Shao's
+    ground plane -> camera pitch), or None when the plane holds too few points."""
+    if len(points_camera) < 3:
+        return None
+    pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points_camera))
+    o3d.utility.random.seed(seed)
+    plane, inliers = pc.segment_plane(threshold_m, 3, 200)
+    if len(inliers) < min_inlier_ratio * len(points_camera):
+        return None
+    n = np.asarray(plane[:3], dtype=np.float64)
+    n /= np.linalg.norm(n)
+    # the camera (origin) is above the ground: n . 0 + d > 0 on the up side
+    return n if plane[3] > 0 else -n
+
+
+class PoseBuffer:
+    """Recent stamped poses; interpolates the pose at a cloud's stamp.
+
+    Args:
+        max_len: poses kept.
+        max_extrapolation_s: how far [s] past the newest pose a query may be answered (with the
+            newest pose).
+    """
+
+    def __init__(self, max_len: int = 200, max_extrapolation_s: float = 0.2) -> None:
+        self._t: Deque[float] = collections.deque(maxlen=max_len)
+        self._T: Deque[np.ndarray] = collections.deque(maxlen=max_len)
+        self.max_extrapolation_s = float(max_extrapolation_s)
+
+    def __len__(self) -> int:
+        return len(self._t)
+
+    @property
+    def latest(self) -> Optional[Tuple[float, np.ndarray]]:
+        return (self._t[-1], self._T[-1]) if self._t else None
+
+    def clear(self) -> None:
+        self._t.clear()
+        self._T.clear()
+
+    def add(self, stamp_s: float, T: np.ndarray) -> None:
+        """Append a pose; stamps must increase (ValueError otherwise)."""
+        T = _check_T(T, 'odometry pose')
+        if not np.isfinite(stamp_s):
+            raise ValueError('odometry stamp is not finite')
+        if self._t and stamp_s <= self._t[-1]:
+            raise ValueError(f'odometry went back in time ({stamp_s:.3f} s after '
+                             f'{self._t[-1]:.3f} s)')
+        self._t.append(float(stamp_s))
+        self._T.append(T)
+
+    def at(self, stamp_s: float) -> np.ndarray:
+        """Pose at ``stamp_s`` (linear / slerp between neighbours); ValueError if not covered."""
+        if not self._t:
+            raise ValueError('no odometry received yet')
+        t = np.asarray(self._t)
+        if stamp_s < t[0]:
+            raise ValueError(f'no odometry as old as {stamp_s:.3f} s (oldest {t[0]:.3f} s)')
+        if stamp_s >= t[-1]:
+            if stamp_s - t[-1] > self.max_extrapolation_s:
+                raise ValueError(f'odometry is stale: newest {t[-1]:.3f} s, cloud at '
+                                 f'{stamp_s:.3f} s')
+            return self._T[-1].copy()
+        k = int(np.searchsorted(t, stamp_s, side='right'))
+        t0, t1 = t[k - 1], t[k]
+        T0, T1 = self._T[k - 1], self._T[k]
+        a = (stamp_s - t0) / (t1 - t0)
+        out = np.eye(4)
+        out[:3, 3] = (1 - a) * T0[:3, 3] + a * T1[:3, 3]
+        rots = Rotation.from_matrix(np.stack([T0[:3, :3], T1[:3, :3]]))
+        out[:3, :3] = Slerp([0.0, 1.0], rots)([a]).as_matrix()[0]
+        return out
+
+
+class OdometryGate:
+    """Rejects dead-reckoning samples that go back in time or jump.
+
+    Args:
+        max_speed_m_s: fastest plausible body speed [m/s] between consecutive samples.
+        max_yaw_rate_deg_s: fastest plausible rotation rate [deg/s].
+        jump_floor_m: position change [m] always allowed (covers stamp jitter).
+    """
+
+    def __init__(self, max_speed_m_s: float = 1.0, max_yaw_rate_deg_s: float = 180.0,
+                 jump_floor_m: float = 0.02) -> None:
+        self.max_speed_m_s = max_speed_m_s
+        self.max_rate_rad_s = np.radians(max_yaw_rate_deg_s)
+        self.jump_floor_m = jump_floor_m
+        self._last: Optional[Tuple[float, np.ndarray]] = None
+
+    def check(self, stamp_s: float, T_odom_base: np.ndarray) -> None:
+        """Accept (and remember) a sample or raise ValueError naming the problem."""
+        T = _check_T(T_odom_base, 'odometry pose')
+        if not np.isfinite(stamp_s):
+            raise ValueError('odometry stamp is not finite')
+        if self._last is not None:
+            t0, T0 = self._last
+            dt = stamp_s - t0
+            if dt <= 0.0:
+                raise ValueError(f'odometry went back in time ({stamp_s:.3f} s after '
+                                 f'{t0:.3f} s)')
+            d = float(np.linalg.norm(T[:3, 3] - T0[:3, 3]))
+            if d > self.jump_floor_m + self.max_speed_m_s * dt:
+                raise ValueError(f'odometry jumped {d:.3f} m in {dt:.3f} s')
+            ang = angle_between(T0[:3, :3], T[:3, :3])
+            if ang > np.radians(2.0) + self.max_rate_rad_s * dt:
+                raise ValueError(f'odometry turned {np.degrees(ang):.1f} deg in {dt:.3f} s')
+        self._last = (float(stamp_s), T)
+
+
+def _kernel(config: MapperConfig):
+    k = config.kernel_scale_m
+    return {'none': lambda: None, 'l1': _REG.L1Loss, 'huber': lambda: _REG.HuberLoss(k),
+            'tukey': lambda: _REG.TukeyLoss(k), 'cauchy': lambda: _REG.CauchyLoss(k),
+            'gm': lambda: _REG.GMLoss(k)}[config.robust_kernel]()
+
+
+def make_estimation(config: MapperConfig):
+    """Open3D transformation estimation for ``config.icp_method`` and its robust kernel."""
+    kernel = _kernel(config)
+    if config.icp_method == 'point_to_point':
+        return _REG.TransformationEstimationPointToPoint()
+    if kernel is None:
+        return _REG.TransformationEstimationPointToPlane()
+    return _REG.TransformationEstimationPointToPlane(kernel)
+
+
+class FineHeightMap:
+    """Per-cell statistics of height samples on a fixed-size window that moves by whole cells.
+
+    Args:
+        resolution_m: cell size [m].
+        shape: (nx, ny) cells.
+        origin_xy: world position [m] of the window's minimum corner (a multiple of the
+            resolution keeps every cell on one global lattice).
+        estimator: 'mean' (mean sample height) or 'plane' (per-cell least-squares plane
+            ``z = h + gx dx + gy dy`` evaluated at the cell centre; falls back to the mean when a
+            cell's samples do not span a plane).
+    """
+
+    _STATS = ('n', 'mean', 'm2', 'min', 'max', 'last', 'sx', 'sy', 'sxx', 'sxy', 'syy', 'sxz',
+              'syz')
+
+    def __init__(self, resolution_m: float, shape: Tuple[int, int],
+                 origin_xy: Tuple[float, float], estimator: str = 'mean') -> None:
+        self.resolution_m = float(resolution_m)
+        self.shape = (int(shape[0]), int(shape[1]))
+        self.origin_xy = np.asarray(origin_xy, dtype=np.float64)
+        self.estimator = estimator
+        self.s: Dict[str, np.ndarray] = {}
+        self.clear()
+
+    def clear(self) -> None:
+        for k in self._STATS:
+            fill = {'min': np.inf, 'max': -np.inf, 'last': np.nan}.get(k, 0.0)
+            self.s[k] = np.full(self.shape, fill, np.float64)
+
+    @property
+    def nbytes(self) -> int:
+        return int(sum(a.nbytes for a in self.s.values()))
+
+    def add(self, points_map: np.ndarray, stamp_s: float) -> int:
+        """Fuse map-frame points ``(N, 3)`` [m]; returns how many fell on the window."""
+        r = self.resolution_m
+        f = (points_map[:, :2] - self.origin_xy) / r
+        ij = np.floor(f).astype(np.int64)
+        ok = ((ij[:, 0] >= 0) & (ij[:, 0] < self.shape[0])
+              & (ij[:, 1] >= 0) & (ij[:, 1] < self.shape[1]))
+        if not np.any(ok):
+            return 0
+        ij, f, z = ij[ok], f[ok], points_map[ok, 2]
+        lin = ij[:, 0] * self.shape[1] + ij[:, 1]
+        cells, inv = np.unique(lin, return_inverse=True)
+        nb = np.bincount(inv).astype(np.float64)
+        sz = np.bincount(inv, weights=z)
+        mb = sz / nb
+        m2b = np.bincount(inv, weights=(z - mb[inv]) ** 2)
+        zmin = np.full(len(cells), np.inf)
+        zmax = np.full(len(cells), -np.inf)
+        np.minimum.at(zmin, inv, z)
+        np.maximum.at(zmax, inv, z)
+        # offsets from the cell centre [m] for the per-cell plane
+        dx = (f[:, 0] - ij[:, 0] - 0.5) * r
+        dy = (f[:, 1] - ij[:, 1] - 0.5) * r
+        dz = z - mb[inv]  # centred heights keep the sums well conditioned
+        s = {k: a.reshape(-1) for k, a in self.s.items()}
+        na, ma = s['n'][cells], s['mean'][cells]
+        n = na + nb
+        delta = mb - ma
+        # plane sums are kept about the running mean: shift old sums to the new mean
+        new_mean = ma + delta * nb / n
+        shift_a = ma - new_mean
+        shift_b = mb - new_mean
+        s['sxz'][cells] += shift_a * s['sx'][cells]
+        s['syz'][cells] += shift_a * s['sy'][cells]
+        bx = np.bincount(inv, weights=dx)
+        by = np.bincount(inv, weights=dy)
+        s['sxz'][cells] += np.bincount(inv, weights=dx * dz) + shift_b * bx
+        s['syz'][cells] += np.bincount(inv, weights=dy * dz) + shift_b * by
+        s['sx'][cells] += bx
+        s['sy'][cells] += by
+        s['sxx'][cells] += np.bincount(inv, weights=dx * dx)
+        s['sxy'][cells] += np.bincount(inv, weights=dx * dy)
+        s['syy'][cells] += np.bincount(inv, weights=dy * dy)
+        s['m2'][cells] += m2b + delta ** 2 * na * nb / n
+        s['mean'][cells] = new_mean
+        s['n'][cells] = n
+        s['min'][cells] = np.minimum(s['min'][cells], zmin)
+        s['max'][cells] = np.maximum(s['max'][cells], zmax)
+        s['last'][cells] = stamp_s
+        return int(ok.sum())
+
+    def heights(self) -> np.ndarray:
+        """Cell heights [m] (float64, NaN where empty) by the configured estimator."""
+        s = self.s
+        n = s['n']
+        seen = n > 0
+        h = np.where(seen, s['mean'], np.nan)
+        if self.estimator != 'plane':
+            return h
+        # normal equations of z - mean = c + gx dx + gy dy (c: offset from the mean)
+        with np.errstate(divide='ignore', invalid='ignore'):
+            nn = np.where(seen, n, 1.0)
+            mx, my = s['sx'] / nn, s['sy'] / nn
+            cxx = s['sxx'] / nn - mx * mx
+            cxy = s['sxy'] / nn - mx * my
+            cyy = s['syy'] / nn - my * my
+            cxz = s['sxz'] / nn  # mean of dz is 0 by construction
+            cyz = s['syz'] / nn
+            det = cxx * cyy - cxy * cxy
+            gx = (cyy * cxz - cxy * cyz) / det
+            gy = (cxx * cyz - cxy * cxz) / det
+            # enough spread: samples cover at least ~1/4 of the cell along both axes
+            r2 = (0.1 * self.resolution_m) ** 2
+            good = seen & (n >= 6) & (cxx > r2) & (cyy > r2) & (det > 0.25 * r2 * r2)
+            hp = s['mean'] - gx * mx - gy * my
+        return np.where(good, hp, h)
+
+    def shift(self, di: int, dj: int) -> None:
+        """Move the window by whole cells (``+di`` = origin moves +x); uncovered cells empty."""
+        if di == 0 and dj == 0:
+            return
+        nx, ny = self.shape
+        for k, a in self.s.items():
+            fill = {'min': np.inf, 'max': -np.inf, 'last': np.nan}.get(k, 0.0)
+            out = np.full_like(a, fill)
+            si0, si1 = max(di, 0), min(nx + di, nx)
+            sj0, sj1 = max(dj, 0), min(ny + dj, ny)
+            if si1 > si0 and sj1 > sj0:
+                out[si0 - di:si1 - di, sj0 - dj:sj1 - dj] = a[si0:si1, sj0:sj1]
+            self.s[k] = out
+        self.origin_xy = self.origin_xy + np.array([di, dj]) * self.resolution_m
+
+    def to_grid(self, frame_id: str = 'map', stamp_s: float = 0.0) -> GridMap:
+        """The window as a :class:`GridMap` with layers elevation, observed, variance, min, max,
+        count, last_seen (NaN where empty; observed is 1/0)."""
+        s = self.s
+        seen = s['n'] > 0
+        nn = np.where(seen, s['n'], 1.0)
+        nan = np.float32(np.nan)
+        layers = {
+            ELEVATION: self.heights().astype(np.float32),
+            OBSERVED: seen.astype(np.float32),
+            VARIANCE: np.where(seen, s['m2'] / nn, nan).astype(np.float32),
+            MIN: np.where(seen, s['min'], nan).astype(np.float32),
+            MAX: np.where(seen, s['max'], nan).astype(np.float32),
+            COUNT: s['n'].astype(np.float32),
+            LAST_SEEN: np.where(seen, s['last'], nan).astype(np.float32),
+        }
+        return GridMap(self.resolution_m, tuple(self.origin_xy), self.shape, layers,
+                       frame_id=frame_id, stamp_s=stamp_s)
+
+
+class IcpMapper:
+    """Dead-reckoning-seeded point-to-plane ICP localisation with a coarse and a fine model.
+
+    Args:
+        config: parameters.
+        T_base_camera: camera mount, ``T_base_link_camera_optical`` (4x4, robot profile).
+
+    Typical use: ``update(cloud_camera, T_odom_base, stamp_s)`` per capture, then
+    ``fine_grid()``, ``coarse_points()``, ``capture_poses()``; ``T_map_odom`` is the
+    correction to re-anchor dead reckoning.
+    """
+
+    def __init__(self, config: MapperConfig, T_base_camera: np.ndarray) -> None:
+        self.config = config
+        self.T_base_camera = _check_T(T_base_camera, 'T_base_camera')
+        self.T_map_odom = np.eye(4)
+        self.counters: collections.Counter = collections.Counter()
+        r = config.fine_resolution_m
+        n = max(2, int(round(config.fine_size_m / r)))
+        self.fine = FineHeightMap(r, (n, n), (0.0, 0.0), config.fine_estimator)
+        self._fine_anchored = False
+        self._model = o3d.geometry.PointCloud()
+        self._poses: Deque[Tuple[float, np.ndarray]] = collections.deque(
+            maxlen=config.max_capture_poses)
+        self._last_stamp = -np.inf
+        self._last_accepted_odom: Optional[np.ndarray] = None
+        self._walked_since_accept_m = 0.0
+        self._last_odom: Optional[np.ndarray] = None
+        self._estimation = make_estimation(config)
+
+    # ---- public state ----------------------------------------------------------------------
+    @property
+    def n_captures(self) -> int:
+        return int(self.counters['fused'])
+
+    @property
+    def stamp_s(self) -> float:
+        """Stamp [s] of the newest fused capture (-inf before the first)."""
+        return self._last_stamp
+
+    def coarse_points(self) -> np.ndarray:
+        """Coarse model points ``(N, 3)`` float64 in ``map`` [m]."""
+        return np.asarray(self._model.points).copy()
+
+    def capture_poses(self) -> Tuple[np.ndarray, np.ndarray]:
+        """Stamps ``(K,)`` [s] and camera poses ``T_map_camera`` ``(K, 4, 4)`` kept with the
+        map (oldest first)."""
+        if not self._poses:
+            return np.zeros(0), np.zeros((0, 4, 4))
+        return (np.array([p[0] for p in self._poses]), np.stack([p[1] for p in self._poses]))
+
+    def fine_grid(self, frame_id: str = 'map') -> GridMap:
+        """The fine height map (see :meth:`FineHeightMap.to_grid`); capture poses ride along
+        in ``metadata['capture_poses']`` as flat row-major 4x4 lists."""
+        grid = self.fine.to_grid(frame_id, self._last_stamp if self._poses else 0.0)
+        stamps, poses = self.capture_poses()
+        grid.metadata['capture_stamps'] = [float(t) for t in stamps]
+        grid.metadata['capture_poses'] = [p.reshape(-1).tolist() for p in poses]
+        return grid
+
+    @property
+    def memory_bytes(self) -> int:
+        """Bytes held by the maps (fine statistics + coarse points/normals + poses)."""
+        m = self._model
+        return (self.fine.nbytes + 8 * 3 * (len(m.points) + len(m.normals) + len(m.colors))
+                + len(self._poses) * 8 * 17)
+
+    # ---- processing --------------------------------------------------------------------------
+    def prepare(self, cloud_camera: np.ndarray, coarse_camera: Optional[np.ndarray] = None
+                ) -> Tuple[np.ndarray, np.ndarray]:
+        """Validate a capture; returns (fine points, ICP source points), camera frame, float64.
+
+        Raises ValueError (naming the problem) for a malformed, empty or all-NaN cloud.
+        """
+        c = self.config
+        cloud = np.asarray(cloud_camera)
+        if cloud.size == 0:
+            raise ValueError('empty cloud')
+        fine = valid_points(cloud, c.min_range_m, c.max_range_m, c.fine_stride_px)
+        if len(fine) == 0:
+            raise ValueError('cloud has no finite point in range (all NaN or out of range)')
+        if len(fine) < c.min_points:
+            raise ValueError(f'cloud has only {len(fine)} valid points (min_points='
+                             f'{c.min_points})')
+        if coarse_camera is not None and np.asarray(coarse_camera).size > 0:
+            src = valid_points(coarse_camera, c.min_range_m, c.max_range_m)
+        else:
+            src = valid_points(cloud, c.min_range_m, c.max_range_m, c.coarse_stride_px)
+        if len(src) < 10:
+            raise ValueError(f'coarse cloud has only {len(src)} valid points')
+        return fine, src
+
+    def predict(self, T_odom_base: np.ndarray) -> np.ndarray:
+        """Prior ``T_map_base`` from dead reckoning and the current correction."""
+        return self.T_map_odom @ _check_T(T_odom_base, 'T_odom_base')
+
+    def update(self, cloud_camera: np.ndarray, T_odom_base: np.ndarray, stamp_s: float,
+               coarse_camera: Optional[np.ndarray] = None,
+               up_camera: Optional[np.ndarray] = None) -> MapperUpdate:
+        """Localise and fuse one capture.
+
+        Args:
+            cloud_camera: ``(H, W, 3)`` organized or ``(N, 3)`` cloud [m], camera-optical frame,
+                NaN = no measurement.
+            T_odom_base: dead-reckoning body pose at the capture's stamp.
+            stamp_s: capture time [s]; must not be older than the map (stamp_tolerance_s).
+            coarse_camera: optional separate sparse cloud for ICP (else sub-sampled).
+            up_camera: optional measured up direction in the camera frame (gravity prior).
+
+        Returns:
+            :class:`MapperUpdate`. Raises ValueError for bad input; then nothing changes.
+        """
+        c = self.config
+        if not np.isfinite(stamp_s):
+            raise ValueError('cloud stamp is not finite')
+        if stamp_s < self._last_stamp - c.stamp_tolerance_s:
+            raise ValueError(f'cloud at {stamp_s:.3f} s is older than the map '
+                             f'({self._last_stamp:.3f} s)')
+        T_odom_base = _check_T(T_odom_base, 'T_odom_base')
+        fine, src = self.prepare(cloud_camera, coarse_camera)
+        if up_camera is not None:
+            up_camera = np.asarray(up_camera, dtype=np.float64).reshape(3)
+            if not np.all(np.isfinite(up_camera)) or np.linalg.norm(up_camera) < 1e-6:
+                raise ValueError('up vector must be finite and non-zero')
+        result = self.align(src, T_odom_base, up_camera)
+        if result.accepted or c.fuse_rejected:
+            self.fuse(fine, src, result.T_map_camera, result.T_map_base, stamp_s)
+            result.fused = True
+        self._last_stamp = max(self._last_stamp, float(stamp_s))
+        return result
+
+    def align(self, src_camera: np.ndarray, T_odom_base: np.ndarray,
+              up_camera: Optional[np.ndarray] = None) -> MapperUpdate:
+        """ICP of camera-frame source points against the coarse model, with the guards.
+
+        Updates ``T_map_odom`` when accepted; never touches the maps.
+        """
+        c = self.config
+        if self._last_odom is not None:
+            self._walked_since_accept_m += float(
+                np.linalg.norm(T_odom_base[:3, 3] - self._last_odom[:3, 3]))
+        self._last_odom = T_odom_base.copy()
+        T_prior = self.T_map_odom @ T_odom_base
+        T_cam_prior = T_prior @ self.T_base_camera
+        up = up_camera if c.use_gravity_prior else None
+        if up is None and c.use_ground_plane_prior:
+            up = ground_plane_up(src_camera, c.ground_plane_threshold_m,
+                                 c.ground_plane_min_inliers)
+        if up is not None:
+            T_cam_prior = T_cam_prior.copy()
+            T_cam_prior[:3, :3] = level_rotation(T_cam_prior[:3, :3], up)
+        n_model = len(self._model.points)
+        if n_model == 0:
+            self.counters['first_capture'] += 1
+            T_base = T_cam_prior @ invert(self.T_base_camera)
+            self._accept(T_base, T_odom_base)
+            return MapperUpdate(True, False, '', T_base, T_cam_prior, T_prior,
+                                self.T_map_odom.copy(), n_source=len(src_camera))
+        src = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(src_camera))
+        src = src.voxel_down_sample(c.coarse_voxel_m)
+        crit = _REG.ICPConvergenceCriteria(c.relative_fitness, c.relative_rmse,
+                                           c.max_iterations)
+        reg = _REG.registration_icp(src, self._model, c.max_correspondence_m, T_cam_prior,
+                                    self._estimation, crit)
+        T_cam = np.asarray(reg.transformation).copy()
+        # Open3D's inlier_rmse is the point-to-point distance; the guard wants the residual
+        # of the metric being minimised, so recompute point-to-plane over the correspondences
+        rmse = self._plane_rmse(src, T_cam, np.asarray(reg.correspondence_set))
+        T_base = T_cam @ invert(self.T_base_camera)
+        corr_m = float(np.linalg.norm(T_base[:3, 3] - T_prior[:3, 3]))
+        corr_rad = angle_between(T_base[:3, :3], T_prior[:3, :3])
+        walked = self._walked_since_accept_m
+        allowed_m = c.max_correction_floor_m + c.max_correction_per_m * walked
+        allowed_rad = np.radians(c.max_rotation_floor_deg + c.max_rotation_per_m_deg * walked)
+        reason = ''
+        if reg.fitness < c.min_fitness:
+            reason = f'fitness {reg.fitness:.2f} < {c.min_fitness:.2f}'
+            self.counters['rejected_fitness'] += 1
+        elif rmse > c.max_rmse_m:
+            reason = f'point-to-plane rmse {rmse * 1e3:.1f} mm > {c.max_rmse_m * 1e3:.1f} mm'
+            self.counters['rejected_rmse'] += 1
+        elif corr_m > allowed_m:
+            reason = (f'correction {corr_m * 1e3:.0f} mm exceeds the expected drift '
+                      f'{allowed_m * 1e3:.0f} mm')
+            self.counters['rejected_correction'] += 1
+        elif corr_rad > allowed_rad:
+            reason = (f'rotation correction {np.degrees(corr_rad):.1f} deg exceeds the expected '
+                      f'drift {np.degrees(allowed_rad):.1f} deg')
+            self.counters['rejected_rotation'] += 1
+        elif up is not None and c.max_level_error_deg > 0:
+            tilt = np.degrees(np.arccos(np.clip((T_cam[:3, :3] @ up)[2], -1.0, 1.0)))
+            if tilt > c.max_level_error_deg:
+                reason = f'tilt {tilt:.1f} deg away from the roll/pitch prior'
+                self.counters['rejected_level'] += 1
+        upd = MapperUpdate(not reason, False, reason, T_base, T_cam, T_prior,
+                           self.T_map_odom.copy(), float(reg.fitness), rmse,
+                           corr_m, float(np.degrees(corr_rad)), len(src.points), n_model)
+        if reason:
+            upd.T_map_base, upd.T_map_camera = T_prior, T_prior @ self.T_base_camera
+            return upd
+        self.counters['accepted'] += 1
+        self._accept(T_base, T_odom_base)
+        upd.T_map_odom = self.T_map_odom.copy()
+        return upd
+
+    def _plane_rmse(self, src: o3d.geometry.PointCloud, T_map_camera: np.ndarray,
+                    corr: np.ndarray) -> float:
+        if len(corr) == 0:
+            return float('inf')
+        p = transform_points(T_map_camera, np.asarray(src.points)[corr[:, 0]])
+        q = np.asarray(self._model.points)[corr[:, 1]]
+        n = np.asarray(self._model.normals)[corr[:, 1]]
+        return float(np.sqrt(np.mean(np.einsum('ij,ij->i', p - q, n) ** 2)))
+
+    def _accept(self, T_map_base: np.ndarray, T_odom_base: np.ndarray) -> None:
+        self.T_map_odom = T_map_base @ invert(T_odom_base)
+        self._walked_since_accept_m = 0.0
+
+    def fuse(self, fine_camera: np.ndarray, src_camera: np.ndarray, T_map_camera: np.ndarray,
+             T_map_base: np.ndarray, stamp_s: float) -> None:
+        """Add a capture at a known camera pose to both models (moving them if needed)."""
+        c = self.config
+        self._recenter(T_map_base[:3, 3])
+        self.fine.add(transform_points(T_map_camera, fine_camera), stamp_s)
+        # coarse model: the capture's sparse points with normals from its own neighbourhood
+        new = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(
+            transform_points(T_map_camera, src_camera)))
+        new = new.voxel_down_sample(c.coarse_voxel_m)
+        new.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(c.normal_radius_m,
+                                                                  c.normal_max_nn))
+        new.orient_normals_towards_camera_location(T_map_camera[:3, 3])
+        # the stamp rides in the colour channel through voxel averaging (capping keeps newest)
+        new.colors = o3d.utility.Vector3dVector(np.full((len(new.points), 3), float(stamp_s)))
+        # re-voxelise so overlapping captures do not pile up
+        model = (self._model + new).voxel_down_sample(c.coarse_voxel_m)
+        nrm = np.asarray(model.normals)
+        nrm /= np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-12)
+        model.normals = o3d.utility.Vector3dVector(nrm)
+        self._model = model
+        self._crop_model(T_map_base[:3, 3])
+        self._poses.append((float(stamp_s), T_map_camera.copy()))
+        self._last_stamp = max(self._last_stamp, float(stamp_s))
+        self.counters['fused'] += 1
+
+    def _crop_model(self, center: np.ndarray) -> None:
+        c = self.config
+        pts = np.asarray(self._model.points)
+        keep = np.linalg.norm(pts[:, :2] - center[:2], axis=1) <= c.coarse_radius_m
+        if keep.sum() > c.coarse_max_points:
+            stamp = np.asarray(self._model.colors)[:, 0]
+            order = np.argsort(-np.where(keep, stamp, -np.inf), kind='stable')
+            keep = np.zeros(len(pts), bool)
+            keep[order[:c.coarse_max_points]] = True
+        if not keep.all():
+            idx = np.flatnonzero(keep)
+            self._model = self._model.select_by_index(idx)
+
+    def _recenter(self, base_xyz: np.ndarray) -> None:
+        f = self.fine
+        r = f.resolution_m
+        half = 0.5 * np.asarray(f.shape) * r
+        if not self._fine_anchored:
+            f.origin_xy = np.floor((base_xyz[:2] - half) / r) * r
+            self._fine_anchored = True
+            return
+        centre = f.origin_xy + half
+        if np.linalg.norm(base_xyz[:2] - centre) <= self.config.recenter_distance_m:
+            return
+        d = np.round((base_xyz[:2] - centre) / r).astype(int)
+        f.shift(int(d[0]), int(d[1]))
+        self.counters['recentred'] += 1
+        lo, hi = f.origin_xy, f.origin_xy + 2 * half
+        while self._poses:
+            p = self._poses[0][1][:3, 3]
+            if np.all(p[:2] >= lo - half) and np.all(p[:2] <= hi + half):
+                break
+            self._poses.popleft()
