@@ -1,0 +1,641 @@
+"""Receding-horizon footstep planning with Shao's gait selection.
+
+* **Cost map** (paper 000 sec. IV; paper 002 eq. 2-3): the foothold cost of every cell comes from
+  :mod:`terrain_perception.features` (Kolter's local features or Shao's ``h + Dev(h)``); either
+  the grid's own ``cost`` layer or one computed here by :func:`cost_layer`.
+* **Receding-horizon search** (paper 000 sec. IV): the next ``horizon_steps`` footsteps in crawl
+  order LH, LF, RH, RF, by a small beam search. Each foothold is a cell of its leg's search area
+  that (a) has a finite cost, (b) was observed, or was filled with a finite line-of-sight upper
+  bound close to its value, (c) is within the leg's reach (analytic IK within joint limits, with
+  a reach margin) from the body pose during the swing, and (d) leaves the next swing's support
+  triangle able to hold the COG with ``stability_margin_m``. Salient contact patches
+  (:mod:`terrain_perception.patches`) near a cell lower its cost.
+* **Gait selection** (paper 002 Fig. 4): per gait period the body advances ``A``; each leg's
+  search area is ``[kL_{i-1}, wL_{i-1} + 2A]`` along the walking direction. If every cell of all
+  four areas has Shao cost ``|h - ground| + Dev(h)`` below ``Threshold`` and every foot is in
+  position (``kL - wL < A/2``) the plan trots with stride ``A``; otherwise it walks, choosing in
+  each area the foothold of least cost weighted by ``omega = (x - centre)^2 + A`` (which keeps
+  footholds off the area borders; on uniform cost it reproduces the paper's walk stride rule
+  ``(2A + wL - kL) / 2``).
+
+Frames: the grid's frame (``map``, z up). Poses are 4x4 ``T_map_base``. Legs are indexed
+``LF, RF, LH, RH`` = 0..3 (``terrain_msgs/Footstep``). Footstep positions are ground contact
+points [m].
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import List, Optional, Tuple
+
+import numpy as np
+
+from terrain_perception import features
+from terrain_perception.config import param
+from terrain_perception.grid import COST, ELEVATION, FILLED, OBSERVED, UPPER_BOUND, GridMap
+from terrain_perception.kinematics import solve_ik
+from terrain_perception.robot_model import LEG_NAMES, RobotModel
+
+# Gait and status codes: the values of terrain_msgs/FootstepPlan.
+GAIT_STAND, GAIT_WALK, GAIT_TROT = 0, 1, 2
+GAIT_NAMES = {GAIT_STAND: 'stand', GAIT_WALK: 'walk', GAIT_TROT: 'trot'}
+(STATUS_OK, STATUS_GOAL_REACHED, STATUS_NO_MAP, STATUS_BAD_MAP, STATUS_ROBOT_OUTSIDE_MAP,
+ STATUS_NO_FOOTHOLD, STATUS_BAD_INPUT) = range(7)
+LF, RF, LH, RH = 0, 1, 2, 3
+#: Crawl (walk) order of paper 000 / the issue: LH, LF, RH, RF.
+CRAWL_ORDER = (LH, LF, RH, RF)
+#: Trot pairs (diagonals), first pair first.
+TROT_PAIRS = ((LF, RH), (RF, LH))
+
+
+@dataclass(frozen=True)
+class PlannerConfig:
+    """Footstep planner parameters (defaults sized for the LittleDog-like profile)."""
+
+    horizon_steps: int = param(4, 'footsteps planned ahead (receding horizon)', 1, 32)
+    cost_source: str = param('layer', "foothold cost: the grid's 'cost' layer, or computed "
+                             "here with features.cost_map ('kolter' or 'shao')",
+                             choices=('layer', 'kolter', 'shao'))
+    body_move_per_period_m: float = param(
+        0.0, "Shao's A: body advance per gait period [m]; 0 = the robot profile's value",
+        0.0, 2.0)
+    trot_threshold_m: float = param(
+        0.0065, "Shao's Threshold on |h - ground| + Dev(h) [m] below which a cell counts as "
+        'flat (paper 002: 0.02 m for FROG-I)', 0.0, 1.0)
+    distance_weight_gain: float = param(
+        1.0, "gain on the quadratic term of Shao's omega = gain (x - centre)^2 + A "
+        '(paper: 1)', 0.0, 1e4)
+    lateral_search_m: float = param(0.03, 'half-width of each search area across the walking '
+                                    'direction [m]', 0.0, 1.0)
+    cost_offset: float = param(0.02, 'added to the cost before the omega weighting so that '
+                               'equal-cost cells still prefer the area centre [cost units]',
+                               0.0, 1e3)
+    stability_margin_m: float = param(0.01, 'least distance from the COG to the support '
+                                      'triangle edges during a swing [m]', 0.0, 1.0)
+    reach_fraction: float = param(0.95, 'largest hip-to-foot distance as a share of the leg '
+                                  'length', 0.1, 1.0)
+    max_bound_gap_m: float = param(
+        0.02, 'a never-observed filled cell is a foothold candidate only if its line-of-sight '
+        'upper bound is at most this far above its filled height [m]', 0.0, 1.0)
+    step_height_weight_per_m: float = param(
+        2.0, 'cost per metre between a foothold and the mean height of the current stance '
+        '[1/m]; keeps the body level enough for the other legs to stay in reach', 0.0, 1e4)
+    patch_bonus: float = param(0.3, 'cost reduction factor for cells within a salient contact '
+                               "patch's radius (0 = ignore patches)", 0.0, 1.0)
+    beam_width: int = param(4, 'partial plans kept per step of the search', 1, 64)
+    candidates_per_step: int = param(6, 'best footholds expanded per partial plan and step',
+                                     1, 64)
+    goal_tolerance_m: float = param(0.03, 'body within this distance of the goal = reached [m]',
+                                    0.0, 10.0)
+
+
+@dataclass
+class Footstep:
+    """One planned foothold (see ``terrain_msgs/Footstep``).
+
+    Attributes:
+        leg: 0..3 (LF, RF, LH, RH). position: (3,) ground contact point [m, map].
+        cost: foothold cost at the cell. step_index: 0 = next. patch_index: -1 = none.
+        body_xy: (2,) COG position [m, map] while this leg swings.
+    """
+
+    leg: int
+    position: np.ndarray
+    cost: float
+    step_index: int
+    patch_index: int = -1
+    body_xy: np.ndarray = field(default_factory=lambda: np.full(2, np.nan))
+
+
+@dataclass
+class FootstepPlan:
+    """Planner output. ``footsteps`` is empty unless ``status == STATUS_OK``."""
+
+    status: int
+    status_text: str
+    gait: int = GAIT_STAND
+    footsteps: List[Footstep] = field(default_factory=list)
+    final_body_pose: np.ndarray = field(default_factory=lambda: np.eye(4))
+    body_move_per_period_m: float = 0.0
+    initial_feet: Optional[np.ndarray] = None
+
+    @property
+    def ok(self) -> bool:
+        return self.status == STATUS_OK
+
+
+def failed(status: int, text: str) -> FootstepPlan:
+    """An empty plan with an explanatory status."""
+    return FootstepPlan(status, text)
+
+
+# --------------------------------------------------------------------------------------------
+# Cost maps
+# --------------------------------------------------------------------------------------------
+
+def cost_layer(grid: GridMap, source: str = 'layer',
+               cost_config: Optional[features.CostConfig] = None) -> np.ndarray:
+    """The foothold cost ``(nx, ny)`` to plan on: the grid's ``cost`` layer (``source='layer'``)
+    or :func:`terrain_perception.features.cost_map` on its elevation (``'kolter'``/``'shao'``).
+
+    Raises ValueError naming a missing layer or an unknown source."""
+    if source == 'layer':
+        if COST not in grid:
+            raise ValueError(f"the grid has no '{COST}' layer (layers: {sorted(grid.layers)})")
+        return grid[COST]
+    if source not in features.METHODS:
+        raise ValueError(f"unknown cost source {source!r}; use 'layer' or one of "
+                         f'{features.METHODS}')
+    if ELEVATION not in grid:
+        raise ValueError(f"the grid has no '{ELEVATION}' layer to compute a cost from")
+    cfg = cost_config or features.CostConfig()
+    import dataclasses
+    cfg = dataclasses.replace(cfg, method=source)
+    return features.cost_map(grid[ELEVATION], grid.resolution_m, cfg)
+
+
+def flatness_cost(heights: np.ndarray, ground_z: float) -> np.ndarray:
+    """Shao's gait-selection cost ``|h - ground| + Dev(h)`` [m] (paper 002 eq. 2-3, with h taken
+    relative to the current stance's ground height and its magnitude used, so a dip is not
+    mistaken for flat ground). Dev comes from :func:`terrain_perception.features.shao_dev`."""
+    h = np.asarray(heights, dtype=np.float64)
+    return np.abs(h - ground_z) + features.shao_dev(h)
+
+
+def candidate_mask(grid: GridMap, cfg: PlannerConfig) -> np.ndarray:
+    """Cells allowed as footholds: known height and either observed, or (never observed and)
+    filled with a finite upper bound within ``max_bound_gap_m`` of the filled height. A grid
+    without an ``observed`` layer (e.g. ground truth) allows every known cell."""
+    h = grid[ELEVATION]
+    ok = np.isfinite(h)
+    if OBSERVED in grid:
+        obs = grid[OBSERVED] > 0.5
+        if UPPER_BOUND in grid:
+            ub = grid[UPPER_BOUND]
+            with np.errstate(invalid='ignore'):
+                bounded = np.isfinite(ub) & (ub - h <= cfg.max_bound_gap_m)
+        else:
+            bounded = np.zeros_like(obs)
+        if FILLED in grid:
+            bounded &= grid[FILLED] > 0.5
+        ok &= obs | bounded
+    return ok
+
+
+# --------------------------------------------------------------------------------------------
+# Geometry helpers
+# --------------------------------------------------------------------------------------------
+
+def _inset_triangle(tri: np.ndarray, margin: float) -> Optional[np.ndarray]:
+    """Vertices (3, 2) of the triangle shrunk by ``margin`` [m], or None if nothing is left."""
+    a, b, c = tri
+    area2 = (b[0] - a[0]) * (c[1] - a[1]) - (b[1] - a[1]) * (c[0] - a[0])
+    if abs(area2) < 1e-12:
+        return None
+    if area2 < 0:
+        tri = tri[[0, 2, 1]]
+    e = np.roll(tri, -1, axis=0) - tri
+    lens = np.linalg.norm(e, axis=1)
+    inradius = abs(area2) / lens.sum()
+    if inradius <= margin:
+        return None
+    incentre = (tri * np.roll(lens, -1)[:, None]).sum(0) / lens.sum()  # opposite-side weights
+    # Homothety about the incentre shrinks every edge's distance by the same factor.
+    return incentre + (tri - incentre) * (1.0 - margin / inradius)
+
+
+def _project_to_triangle(p: np.ndarray, tri: np.ndarray) -> np.ndarray:
+    """Closest point of the (closed, either orientation) triangle ``tri`` to ``p`` (2,)."""
+    if point_in_triangle_margin(p, tri) >= 0.0:
+        return p.copy()
+    best, bd = None, np.inf
+    for i in range(3):
+        a, b = tri[i], tri[(i + 1) % 3]
+        ab = b - a
+        t = np.clip(np.dot(p - a, ab) / max(np.dot(ab, ab), 1e-18), 0.0, 1.0)
+        q = a + t * ab
+        d = np.dot(p - q, p - q)
+        if d < bd:
+            best, bd = q, d
+    return best
+
+
+def point_in_triangle_margin(p: np.ndarray, tri: np.ndarray) -> float:
+    """Signed distance [m] from ``p`` (2,) to the nearest edge line of ``tri`` (3, 2): positive
+    inside, negative outside (the stability margin of a COG over a support triangle)."""
+    tri = np.asarray(tri, dtype=np.float64)
+    a, b, c = tri
+    area2 = (b[0] - a[0]) * (c[1] - a[1]) - (b[1] - a[1]) * (c[0] - a[0])
+    if abs(area2) < 1e-12:
+        return -np.inf
+    sgn = 1.0 if area2 > 0 else -1.0
+    out = np.inf
+    for i in range(3):
+        a, b = tri[i], tri[(i + 1) % 3]
+        ab = b - a
+        cross = ab[0] * (p[1] - a[1]) - ab[1] * (p[0] - a[0])
+        out = min(out, sgn * cross / np.linalg.norm(ab))
+    return float(out)
+
+
+def body_pose(body_xy: np.ndarray, feet: np.ndarray, yaw: float, robot: RobotModel,
+              max_tilt_rad: float = 0.35) -> np.ndarray:
+    """Planned base pose (4x4) over the feet (4, 3) [m]: heading ``yaw``, z axis along the normal
+    of the least-squares plane through the foot contacts (tilt capped at ``max_tilt_rad``), origin
+    the standing height along that normal above the plane at ``body_xy``. Following the feet's
+    plane keeps every leg near its nominal length on uneven ground, as the robot's posture
+    adjustment does (paper 002 sec. III)."""
+    feet = np.asarray(feet, dtype=np.float64)
+    A_ = np.c_[np.ones(len(feet)), feet[:, :2] - feet[:, :2].mean(0)]
+    sol, *_ = np.linalg.lstsq(A_, feet[:, 2], rcond=None)
+    grad = sol[1:]
+    gnorm = float(np.hypot(*grad))
+    if gnorm > np.tan(max_tilt_rad):
+        grad = grad * (np.tan(max_tilt_rad) / gnorm)
+    n = np.array([-grad[0], -grad[1], 1.0])
+    n /= np.linalg.norm(n)
+    h = np.array([np.cos(yaw), np.sin(yaw), 0.0])
+    x = h - np.dot(h, n) * n
+    x /= np.linalg.norm(x)
+    T = np.eye(4)
+    T[:3, :3] = np.c_[x, np.cross(n, x), n]
+    xy = np.asarray(body_xy, dtype=np.float64)
+    z_plane = sol[0] + np.dot(grad, xy - feet[:, :2].mean(0))
+    T[:3, 3] = np.array([xy[0], xy[1], z_plane]) + robot.standing_height_m * n
+    return T
+
+
+def reachable(robot: RobotModel, T_map_base: np.ndarray, feet_map: np.ndarray, legs: np.ndarray,
+              reach_fraction: float) -> np.ndarray:
+    """Which contact points ``feet_map`` (K, 3) [m, map] leg ``legs`` (K,) can reach from the base
+    pose: IK within joint limits and hip-to-foot distance <= ``reach_fraction`` x leg length."""
+    feet_map = np.asarray(feet_map, dtype=np.float64).reshape(-1, 3)
+    legs = np.asarray(legs, dtype=np.int64).reshape(-1)
+    R, t = T_map_base[:3, :3], T_map_base[:3, 3]
+    centre = feet_map + np.array([0.0, 0.0, robot.foot_radius_m])
+    p_base = (centre - t) @ R
+    targets = np.broadcast_to(np.array(robot.nominal_feet) + [0, 0, robot.foot_radius_m],
+                              (len(p_base), 4, 3)).copy()
+    targets[np.arange(len(p_base)), legs] = p_base
+    ok = solve_ik(robot, targets).ok[np.arange(len(p_base)), legs]
+    flex = np.array(robot.leg_plane_offsets)[legs]
+    dist = np.linalg.norm(p_base - flex, axis=1)
+    return ok & (dist <= reach_fraction * robot.leg_length_m)
+
+
+# --------------------------------------------------------------------------------------------
+# Planner
+# --------------------------------------------------------------------------------------------
+
+@dataclass
+class _State:
+    feet: np.ndarray            # (4, 3) contact points [m]
+    total: float                # accumulated weighted cost
+    steps: List[Footstep]
+    period_feet: np.ndarray     # (4, 3) feet at the start of the current gait period
+
+
+class FootstepPlanner:
+    """Plans footsteps on one map. Build once per map (``set_map``), call :meth:`plan`.
+
+    Args:
+        robot: geometry and gait defaults (hip offsets, nominal stance, leg lengths, A).
+        config: planner parameters.
+        cost_config: weights for ``cost_source='kolter'``/``'shao'``.
+    """
+
+    def __init__(self, robot: RobotModel, config: PlannerConfig = PlannerConfig(),
+                 cost_config: Optional[features.CostConfig] = None) -> None:
+        self.robot = robot
+        self.cfg = config
+        self.cost_config = cost_config
+        self.grid: Optional[GridMap] = None
+        self.cost: Optional[np.ndarray] = None
+        self.allowed: Optional[np.ndarray] = None
+
+    @property
+    def A(self) -> float:
+        """Shao's body movement per period [m]."""
+        return self.cfg.body_move_per_period_m or self.robot.body_move_per_period_m
+
+    def set_map(self, grid: GridMap) -> Optional[FootstepPlan]:
+        """Take a new map (receding horizon: call on every map). Returns a failed plan saying
+        why when the map cannot be planned on, else None."""
+        self.grid = self.cost = self.allowed = None
+        if grid is None:
+            return failed(STATUS_NO_MAP, 'no map received yet')
+        if ELEVATION not in grid:
+            return failed(STATUS_BAD_MAP, f"map has no '{ELEVATION}' layer "
+                          f'(layers: {sorted(grid.layers)})')
+        if not np.any(np.isfinite(grid[ELEVATION])):
+            return failed(STATUS_BAD_MAP, 'map is empty: no cell has a known elevation')
+        try:
+            cost = np.asarray(cost_layer(grid, self.cfg.cost_source, self.cost_config),
+                              dtype=np.float64)
+        except ValueError as exc:
+            return failed(STATUS_BAD_MAP, f'cannot build the cost map: {exc}')
+        if not np.any(np.isfinite(cost)):
+            return failed(STATUS_BAD_MAP, 'cost layer has no finite value')
+        self.grid, self.cost = grid, cost
+        self.allowed = candidate_mask(grid, self.cfg) & np.isfinite(cost)
+        return None
+
+    # ---- helpers ---------------------------------------------------------------------------
+    def _nominal_feet(self, T_map_base: np.ndarray) -> np.ndarray:
+        nom = np.array(self.robot.nominal_feet)
+        xy = nom[:, :2] @ T_map_base[:2, :2].T + T_map_base[:2, 3]
+        z = self.grid.sample(ELEVATION, xy).astype(np.float64)
+        fallback = T_map_base[2, 3] - self.robot.standing_height_m
+        return np.c_[xy, np.where(np.isfinite(z), z, fallback)]
+
+    def _area(self, foot_u: float, nom_u: float, nom_v: float, wL: float, A: float):
+        """Search area of one leg: along-track [foot, nominal + wL + 2A] (capped by the max step
+        length), across-track nominal +- lateral_search. Returns (u, v, centre_u) lattices."""
+        res = self.grid.resolution_m
+        lo = foot_u
+        hi = min(nom_u + wL + 2.0 * A, foot_u + self.robot.max_step_length_m)
+        hi = max(hi, lo)
+        centre = 0.5 * (lo + hi)
+        us = np.arange(lo, hi + 0.5 * res, res) if hi > lo else np.array([lo])
+        w = self.cfg.lateral_search_m
+        vs = nom_v + np.arange(-w, w + 0.5 * res, res) if w > 0 else np.array([nom_v])
+        U, V = np.meshgrid(us, vs, indexing='ij')
+        return U.ravel(), V.ravel(), centre
+
+    def _to_map(self, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+        return self.origin + np.outer(u, self.hdir) + np.outer(v, self.ldir)
+
+    def _uv(self, xy: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
+        d = np.asarray(xy)[..., :2] - self.origin
+        return d @ self.hdir, d @ self.ldir
+
+    def _cells(self, xy: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
+        ij = self.grid.world_to_index(xy)
+        inside = self.grid.inside(ij)
+        ij = np.where(inside[:, None], ij, 0)
+        return ij, inside
+
+    # ---- gait selection (paper 002 Fig. 4) -------------------------------------------------
+    def select_gait(self, feet: np.ndarray, wL: float, A: float) -> Tuple[int, str]:
+        """Fig. 4's test for one period from the feet (4, 3) and the body's along-track position
+        ``wL`` [m]: trot when every search area is flat (Shao cost < Threshold) and every foot is
+        in position (``kL - wL < A/2``), else walk. Returns ``(gait, reason)``."""
+        g = self.grid
+        ground = float(np.mean(feet[:, 2]))
+        fu, _ = self._uv(feet)
+        flat_all = True
+        for k in range(4):
+            u, v, _ = self._area(fu[k], self.nom_u[k], self.nom_v[k], wL, A)
+            ij, inside = self._cells(self._to_map(u, v))
+            h = g[ELEVATION][ij[:, 0], ij[:, 1]].astype(np.float64)
+            if not np.all(inside & np.isfinite(h)):
+                flat_all = False
+                break
+            i0, j0 = ij.min(0)
+            i1, j1 = ij.max(0) + 1
+            # Dev needs the 3x3 neighbours: evaluate on the area's bounding box plus one cell.
+            a0, b0 = max(i0 - 1, 0), max(j0 - 1, 0)
+            sub = g[ELEVATION][a0:i1 + 1, b0:j1 + 1]
+            fc = flatness_cost(sub, ground)[ij[:, 0] - a0, ij[:, 1] - b0]
+            if not np.all(fc < self.cfg.trot_threshold_m):
+                flat_all = False
+                break
+        if not flat_all:
+            return GAIT_WALK, f'obstacle in the search area of leg {LEG_NAMES[k]}'
+        kL = fu - self.nom_u
+        if np.all(kL - wL < A / 2.0):
+            return GAIT_TROT, 'all search areas flat and feet in position'
+        return GAIT_WALK, 'flat, but feet out of position (walk stride rule)'
+
+    # ---- main entry --------------------------------------------------------------------------
+    def plan(self, T_map_base: np.ndarray, goal_xy: Optional[np.ndarray] = None,
+             feet: Optional[np.ndarray] = None, patches: Optional[Tuple[np.ndarray,
+                                                                         np.ndarray]] = None,
+             first_leg: int = LH) -> FootstepPlan:
+        """Plan the next ``horizon_steps`` footsteps.
+
+        Args:
+            T_map_base: current base pose (4x4) in the map frame.
+            goal_xy: (2,) goal [m, map]; None = straight ahead along the body's heading.
+            feet: (4, 3) current contact points [m, map]; None = nominal stance at the pose.
+            patches: optional ``(vertices (N, 3), radii (N,))`` of salient contact patches in
+                the map frame.
+            first_leg: the leg to move first in a walk (crawl order continues from it).
+
+        Returns:
+            A plan; never raises on bad input (the status says what is wrong).
+        """
+        if self.grid is None:
+            return failed(STATUS_NO_MAP, 'no usable map (call set_map first)')
+        T = np.asarray(T_map_base, dtype=np.float64)
+        if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+            return failed(STATUS_BAD_INPUT, 'robot pose is not a finite 4x4 transform')
+        if first_leg not in CRAWL_ORDER:
+            return failed(STATUS_BAD_INPUT, f'first_leg must be one of 0..3, got {first_leg}')
+        g = self.grid
+        body_xy = T[:2, 3]
+        if not g.inside(g.world_to_index(body_xy)):
+            return failed(STATUS_ROBOT_OUTSIDE_MAP,
+                          f'robot at ({body_xy[0]:.3f}, {body_xy[1]:.3f}) m is outside the map '
+                          f'[{g.origin_xy[0]:.3f}..{g.origin_xy[0] + g.length_xy[0]:.3f}] x '
+                          f'[{g.origin_xy[1]:.3f}..{g.origin_xy[1] + g.length_xy[1]:.3f}]')
+        if goal_xy is None:
+            yaw = float(np.arctan2(T[1, 0], T[0, 0]))
+            remaining = np.inf
+        else:
+            goal = np.asarray(goal_xy, dtype=np.float64).reshape(-1)[:2]
+            if goal.shape != (2,) or not np.all(np.isfinite(goal)):
+                return failed(STATUS_BAD_INPUT, f'goal is not a finite (x, y): {goal_xy}')
+            d = goal - body_xy
+            remaining = float(np.hypot(*d))
+            if remaining <= self.cfg.goal_tolerance_m:
+                return FootstepPlan(STATUS_GOAL_REACHED, f'goal reached ({remaining:.3f} m away)',
+                                    final_body_pose=T.copy())
+            if not g.inside(g.world_to_index(goal)):
+                return failed(STATUS_BAD_INPUT,
+                              f'goal ({goal[0]:.3f}, {goal[1]:.3f}) m is outside the map: it '
+                              f'cannot be reached on this map')
+            yaw = float(np.arctan2(d[1], d[0]))
+        self.hdir = np.array([np.cos(yaw), np.sin(yaw)])
+        self.ldir = np.array([-self.hdir[1], self.hdir[0]])
+        self.origin = body_xy.copy()
+        Tb = T.copy()
+        Tb[:3, :3] = body_pose(body_xy, np.zeros((4, 3)), yaw, self.robot)[:3, :3]
+        if feet is None:
+            feet = self._nominal_feet(Tb)
+        feet = np.asarray(feet, dtype=np.float64)
+        if feet.shape != (4, 3) or not np.all(np.isfinite(feet)):
+            return failed(STATUS_BAD_INPUT, f'feet must be a finite (4, 3) array, got {feet}')
+        nom = np.array(self.robot.nominal_feet)
+        self.nom_u, self.nom_v = nom[:, 0], nom[:, 1]
+        A = float(min(self.A, remaining))
+        if patches is not None:
+            pv, pr = (np.asarray(patches[0], dtype=np.float64).reshape(-1, 3),
+                      np.asarray(patches[1], dtype=np.float64).reshape(-1))
+            self.patches = (pv, pr) if len(pv) else None
+        else:
+            self.patches = None
+
+        gait, why = self.select_gait(feet, 0.0, A)
+        if gait == GAIT_TROT:
+            plan = self._plan_trot(feet, yaw, A, remaining)
+            if plan is not None:
+                plan.status_text = f'trot: {why}; ' + plan.status_text
+                return plan
+            why = 'trot footholds not reachable, walking instead'
+        plan = self._plan_walk(feet, yaw, A, remaining, first_leg)
+        if plan.ok:
+            plan.status_text = f'walk: {why}; ' + plan.status_text
+        return plan
+
+    # ---- trot ------------------------------------------------------------------------------
+    def _plan_trot(self, feet, yaw, A, remaining) -> Optional[FootstepPlan]:
+        cfg, g = self.cfg, self.grid
+        steps: List[Footstep] = []
+        cur = feet.copy()
+        wL = 0.0
+        n_periods = max(1, int(np.ceil(cfg.horizon_steps / 2)))
+        idx = 0
+        for period in range(n_periods):
+            if period > 0:
+                gait, _ = self.select_gait(cur, wL, A)
+                if gait != GAIT_TROT:
+                    break
+            wL_new = wL + A
+            # Both pairs swing with the body half-way: feet move from A/2 behind to A/2 ahead
+            # of their nominal place.
+            body_xy = self.origin + (wL + 0.5 * A) * self.hdir
+            for pair in TROT_PAIRS:
+                if idx >= cfg.horizon_steps:
+                    break
+                new = cur.copy()
+                xy = cur[list(pair), :2] + A * self.hdir
+                z = g.sample(ELEVATION, xy).astype(np.float64)
+                ij, inside = self._cells(xy)
+                if not np.all(inside & np.isfinite(z)) or not np.all(
+                        self.allowed[ij[:, 0], ij[:, 1]]):
+                    return None if not steps else self._finish(steps, cur, yaw, GAIT_TROT, A)
+                new[list(pair)] = np.c_[xy, z]
+                Tb = body_pose(body_xy, new, yaw, self.robot)
+                if not (np.all(reachable(self.robot, Tb, new, np.arange(4), cfg.reach_fraction))
+                        and np.all(reachable(self.robot, Tb, cur, np.arange(4),
+                                             cfg.reach_fraction))):
+                    return None if not steps else self._finish(steps, cur, yaw, GAIT_TROT, A)
+                for leg, p in zip(pair, new[list(pair)]):
+                    c = float(self.cost[tuple(g.world_to_index(p[:2]))])
+                    steps.append(Footstep(leg, p.copy(), c, idx, -1, body_xy.copy()))
+                cur = new
+                idx += 1
+            wL = wL_new
+        if not steps:
+            return None
+        return self._finish(steps, cur, yaw, GAIT_TROT, A)
+
+    def _finish(self, steps, feet, yaw, gait, A, text='') -> FootstepPlan:
+        u, _ = self._uv(feet)
+        body_u = float(np.mean(u - self.nom_u))
+        body_xy = self.origin + body_u * self.hdir + float(
+            np.mean(self._uv(feet)[1] - self.nom_v)) * self.ldir
+        T = body_pose(body_xy, feet, yaw, self.robot)
+        n = len({s.step_index for s in steps})
+        return FootstepPlan(STATUS_OK, text or f'{n} step(s) planned', gait, steps, T, A)
+
+    # ---- walk (crawl) beam search ------------------------------------------------------------
+    def _candidates(self, state: _State, leg: int, feet0: np.ndarray, wL0: float, A: float,
+                    Tb: np.ndarray):
+        """Scored candidate footholds of ``leg`` (in its period's search area)."""
+        cfg, g = self.cfg, self.grid
+        fu0, _ = self._uv(feet0)
+        u, v, centre = self._area(fu0[leg], self.nom_u[leg], self.nom_v[leg], wL0, A)
+        xy = self._to_map(u, v)
+        ij, inside = self._cells(xy)
+        ok = inside & self.allowed[ij[:, 0], ij[:, 1]]
+        if not np.any(ok):
+            return None, 'no observed, finite-cost cell in its search area'
+        xy, u, v, ij = xy[ok], u[ok], v[ok], ij[ok]
+        z = g[ELEVATION][ij[:, 0], ij[:, 1]].astype(np.float64)
+        pts = np.c_[xy, z]
+        reach = reachable(self.robot, Tb, pts, np.full(len(pts), leg), cfg.reach_fraction)
+        if not np.any(reach):
+            return None, 'no cell of its search area is within reach'
+        pts, u, v, ij = pts[reach], u[reach], v[reach], ij[reach]
+        cost = self.cost[ij[:, 0], ij[:, 1]]
+        omega = (cfg.distance_weight_gain * ((u - centre) ** 2 + (v - self.nom_v[leg]) ** 2)
+                 + A) / max(A, 1e-9)
+        dz = np.abs(pts[:, 2] - float(np.mean(state.feet[:, 2])))
+        J = omega * (np.maximum(cost, 0.0) + cfg.cost_offset + cfg.step_height_weight_per_m * dz)
+        pidx = np.full(len(pts), -1)
+        if self.patches is not None and cfg.patch_bonus > 0:
+            pv, pr = self.patches
+            d = np.linalg.norm(pts[:, None, :2] - pv[None, :, :2], axis=2) - pr[None]
+            near = np.argmin(d, axis=1)
+            hit = d[np.arange(len(pts)), near] <= 0
+            pidx = np.where(hit, near, -1)
+            J = np.where(hit, J * (1.0 - cfg.patch_bonus), J)
+        order = np.argsort(J, kind='stable')[:cfg.candidates_per_step]
+        return (pts[order], cost[order], J[order], pidx[order]), ''
+
+    def _plan_walk(self, feet, yaw, A, remaining, first_leg) -> FootstepPlan:
+        cfg, robot = self.cfg, self.robot
+        start = CRAWL_ORDER.index(first_leg)
+        beam = [_State(feet.copy(), 0.0, [], feet.copy())]
+        wL0 = 0.0
+        last_fail = ''
+        for s in range(cfg.horizon_steps):
+            leg = CRAWL_ORDER[(start + s) % 4]
+            phase = s % 4
+            if s > 0 and phase == 0:
+                wL0 = min(wL0 + A, remaining)
+            # The body advances A per period, A/4 per swing; it is mid-way during each swing.
+            body_nom_u = min(wL0 + A * (phase + 0.5) / 4.0, remaining)
+            new_beam: List[_State] = []
+            for st in beam:
+                if s > 0 and phase == 0:
+                    st.period_feet = st.feet.copy()
+                pf = st.period_feet
+                others = [k for k in range(4) if k != leg]
+                tri = st.feet[others, :2]
+                inset = _inset_triangle(tri, cfg.stability_margin_m)
+                if inset is None:
+                    last_fail = (f'support triangle of step {s} (leg {LEG_NAMES[leg]} swinging) '
+                                 f'cannot hold the COG with a {cfg.stability_margin_m} m margin')
+                    continue
+                nominal = self.origin + body_nom_u * self.hdir
+                cog = _project_to_triangle(nominal, inset)
+                Tb = body_pose(cog, st.feet, yaw, robot)
+                if not np.all(reachable(robot, Tb, st.feet, np.arange(4), cfg.reach_fraction)):
+                    last_fail = (f'step {s} (leg {LEG_NAMES[leg]}): shifting the COG into the '
+                                 'support triangle puts a stance leg out of reach')
+                    continue
+                cands, why = self._candidates(st, leg, pf, wL0, A, Tb)
+                if cands is None:
+                    last_fail = f'step {s}: leg {LEG_NAMES[leg]} has {why}'
+                    continue
+                for p, c, J, pi in zip(*cands):
+                    nf = st.feet.copy()
+                    nf[leg] = p
+                    new_beam.append(_State(
+                        nf, st.total + float(J),
+                        st.steps + [Footstep(leg, p.copy(), float(c), s, int(pi), cog.copy())],
+                        pf))
+            if not new_beam:
+                if s == 0:
+                    return failed(STATUS_NO_FOOTHOLD, f'no feasible first step: {last_fail}')
+                best = beam[0]
+                return self._finish(best.steps, best.feet, yaw, GAIT_WALK, A,
+                                    f'{s} step(s) planned; horizon cut: {last_fail}')
+            new_beam.sort(key=lambda st: st.total)
+            beam = new_beam[:cfg.beam_width]
+        best = beam[0]
+        return self._finish(best.steps, best.feet, yaw, GAIT_WALK, A)
+
+
+def plan_footsteps(grid: GridMap, robot: RobotModel, T_map_base: np.ndarray,
+                   goal_xy: Optional[np.ndarray] = None, config: PlannerConfig = PlannerConfig(),
+                   **kwargs) -> FootstepPlan:
+    """One-shot convenience: :meth:`FootstepPlanner.set_map` then :meth:`FootstepPlanner.plan`."""
+    planner = FootstepPlanner(robot, config)
+    bad = planner.set_map(grid)
+    if bad is not None:
+        return bad
+    return planner.plan(T_map_base, goal_xy, **kwargs)

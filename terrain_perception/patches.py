@@ -1,0 +1,628 @@
+"""Contact patches: foot-sized paraboloid surface pieces found in an organized cloud.
+
+Implements Kanoulas & Vona, "Bio-Inspired Rough Terrain Contact Patch Perception" (paper 003),
+section III, steps 1-14:
+
+* Stage I   - bilateral filter on the organized cloud (along the pixel rays) and a 2x2 median
+  downsample (:func:`bilateral_filter_cloud`, :func:`median_downsample_2x2`).
+* Stage II  - gravity from the IMU orientation, the fixation point ``f = l_d g + l_f (x x g)``
+  and the seeds within ``R`` of it (:func:`gravity_in_camera`, :func:`fixation_point`).
+* Stage III - normals at two scales from integral images, window ``2 r f / Z`` and ``r f / Z``
+  (:func:`integral_normals`), Difference-of-Normals and Difference-of-Normal-Gravity filters.
+* Stage IV  - random subsample to ``n_s`` seeds, neighbourhoods of at most ``n_f`` points within
+  ``r`` by an organized (image-window) search, paraboloid fit (closed-form quadric least-squares
+  start, Levenberg-Marquardt refinement batched over all patches, :func:`fit_paraboloids`), the
+  curvature filter (``kappa_min``, ``kappa_max``) and the RMS residual filter (``d_max``).
+
+Patch model (paper 003 eq. 1; ``terrain_msgs/ContactPatch``): in the patch frame
+``z = 0.5 (kx x^2 + ky y^2)``, kx <= ky, the z axis is the surface normal at the vertex pointing
+away from the terrain (against gravity), x and y are the principal directions. Positive
+curvature therefore bends the surface *up*, away from the terrain: a dip / bowl (the paper's
+"concave"); negative is a bump ("convex").
+
+All geometry is in the frame of the input cloud (the camera's optical frame: x right, y down,
+z forward) in metres unless a docstring says otherwise.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+from typing import Dict, Optional
+
+import cv2
+import numpy as np
+
+from terrain_perception.config import param
+
+
+@dataclass(frozen=True)
+class PatchConfig:
+    """Contact-patch parameters. Defaults are paper 003's human-scale values (Stages II-IV)."""
+
+    # Stage I
+    bilateral_window_px: int = param(5, 'bilateral filter diameter at input resolution [px]',
+                                     1, 15)
+    bilateral_sigma_space_px: float = param(3.0, 'bilateral spatial sigma [px]', 0.1, 20.0)
+    bilateral_sigma_depth_m: float = param(
+        0.03, 'bilateral range sigma on depth [m]; depth jumps well above it are preserved',
+        0.001, 1.0)
+    # Stage II (DtFP)
+    fixation_down_m: float = param(1.0, 'l_d: distance down (along gravity) from the camera to '
+                                   'the fixation point [m]', 0.0, 5.0)
+    fixation_forward_m: float = param(1.2, 'l_f: distance forward from the camera to the '
+                                      'fixation point [m]', 0.0, 10.0)
+    roi_radius_m: float = param(0.7, 'R: radius of the seed region around the fixation point '
+                                '[m]', 0.01, 10.0)
+    # Stage III (DoN, DoNG)
+    patch_radius_m: float = param(0.10, 'r: patch neighbourhood radius [m]', 0.005, 1.0)
+    max_don_deg: float = param(15.0, 'phi_d: max angle between the r and r/2 scale normals '
+                               '[deg]', 0.0, 90.0)
+    max_dong_deg: float = param(35.0, 'phi_g: max angle between the r-scale normal and -gravity '
+                                '[deg]', 0.0, 180.0)
+    # Stage IV
+    max_seeds: int = param(100, 'n_s: max number of seeds (patches fitted per frame)', 1, 100000)
+    max_neighbours: int = param(50, 'n_f: max points per patch neighbourhood', 6, 1000)
+    min_neighbours: int = param(12, 'fewest neighbourhood points a patch is fitted to', 6, 1000)
+    kappa_min_per_m: float = param(-13.6, 'kappa_min: smallest allowed min principal curvature '
+                                   '[1/m]', -1000.0, 0.0)
+    kappa_max_per_m: float = param(19.7, 'kappa_max: largest allowed max principal curvature '
+                                   '[1/m]', 0.0, 1000.0)
+    max_residual_m: float = param(0.01, 'd_max: max RMS Euclidean fit residual [m]', 0.0, 1.0)
+    lm_iterations: int = param(6, 'Levenberg-Marquardt iterations after the closed-form start',
+                               0, 100)
+    neighbour_draws: int = param(3, 'random pixel draws per neighbourhood slot (organized '
+                                 'search; draws outside the r-ball are discarded)', 1, 20)
+    random_seed: int = param(0, 'seed of the random subsampling (repeatable runs)', 0, 2**31 - 1)
+
+
+# --------------------------------------------------------------------------------------------
+# Stage I
+# --------------------------------------------------------------------------------------------
+
+def _check_cloud(cloud: np.ndarray) -> np.ndarray:
+    cloud = np.asarray(cloud)
+    if cloud.ndim != 3 or cloud.shape[2] != 3:
+        raise ValueError(f'contact patches need an organized (H, W, 3) cloud, got shape '
+                         f'{cloud.shape}')
+    if cloud.shape[0] < 4 or cloud.shape[1] < 4:
+        raise ValueError(f'organized cloud {cloud.shape[:2]} is too small (need >= 4x4)')
+    return np.asarray(cloud, dtype=np.float32)
+
+
+def bilateral_filter_cloud(cloud: np.ndarray, cfg: PatchConfig) -> np.ndarray:
+    """Step 3: discontinuity-preserving bilateral filter of an organized cloud ``(H, W, 3)``.
+
+    The depth image (z) is filtered; each point moves along its pixel ray to the new depth, so
+    the pixel-to-point correspondence is kept. Invalid (NaN or z <= 0) points stay NaN and do not
+    bleed into valid ones: they are set to 0 m before filtering, far outside the range sigma.
+    """
+    cloud = _check_cloud(cloud)
+    z = cloud[..., 2]
+    valid = np.isfinite(cloud).all(axis=2) & (z > 0)
+    z0 = np.where(valid, z, 0.0).astype(np.float32)
+    zf = cv2.bilateralFilter(z0, cfg.bilateral_window_px, cfg.bilateral_sigma_depth_m,
+                             cfg.bilateral_sigma_space_px)
+    scale = np.where(valid, zf / np.where(valid, z, 1.0), np.nan).astype(np.float32)
+    return cloud * scale[..., None]
+
+
+def median_downsample_2x2(cloud: np.ndarray) -> np.ndarray:
+    """Step 4: ``(H, W, 3)`` -> ``(H // 2, W // 2, 3)`` by the per-coordinate median of each 2x2
+    block over its valid points (NaN where the block has none)."""
+    cloud = _check_cloud(cloud)
+    h, w = cloud.shape[0] // 2 * 2, cloud.shape[1] // 2 * 2
+    b = cloud[:h, :w].reshape(h // 2, 2, w // 2, 2, 3).transpose(0, 2, 4, 1, 3)
+    b = b.reshape(h // 2, w // 2, 3, 4)
+    valid = np.isfinite(b[:, :, 2, :])
+    nvalid = valid.sum(axis=-1)
+    # All four valid (the common case): median of 4 = (sum - max - min) / 2.
+    out = 0.5 * (b.sum(axis=-1) - b.max(axis=-1) - b.min(axis=-1))
+    part = (nvalid > 0) & (nvalid < 4)
+    if np.any(part):
+        s = np.sort(b[part], axis=-1)  # NaN sorts last
+        n = nvalid[part][:, None]
+        lo = np.take_along_axis(s, ((n - 1) // 2)[..., None].repeat(3, 1), axis=-1)[..., 0]
+        hi = np.take_along_axis(s, (n // 2)[..., None].repeat(3, 1), axis=-1)[..., 0]
+        out[part] = 0.5 * (lo + hi)
+    out[nvalid == 0] = np.nan
+    return out.astype(np.float32)
+
+
+# --------------------------------------------------------------------------------------------
+# Stage II
+# --------------------------------------------------------------------------------------------
+
+def gravity_in_camera(q_world_imu: np.ndarray, R_imu_camera: np.ndarray) -> np.ndarray:
+    """Step 2: unit gravity vector (pointing down) in the camera frame.
+
+    Args:
+        q_world_imu: absolute IMU orientation quaternion (x, y, z, w), world z up.
+        R_imu_camera: 3x3 rotation of the camera frame in the IMU frame.
+    """
+    from terrain_perception.transforms import quat_to_R
+    q = np.asarray(q_world_imu, dtype=np.float64)
+    if q.shape != (4,) or not np.all(np.isfinite(q)) or np.linalg.norm(q) < 1e-6:
+        raise ValueError(f'IMU orientation must be a finite non-zero quaternion, got {q}')
+    R_world_camera = quat_to_R(q) @ np.asarray(R_imu_camera, dtype=np.float64)
+    return R_world_camera.T @ np.array([0.0, 0.0, -1.0])
+
+
+def fixation_point(gravity_cam: np.ndarray, cfg: PatchConfig) -> np.ndarray:
+    """Step 5: ``f = l_d g + l_f ([1 0 0]^T x g)`` in the camera frame [m]."""
+    g = _unit_gravity(gravity_cam)
+    return cfg.fixation_down_m * g + cfg.fixation_forward_m * np.cross([1.0, 0.0, 0.0], g)
+
+
+def _unit_gravity(gravity_cam: np.ndarray) -> np.ndarray:
+    g = np.asarray(gravity_cam, dtype=np.float64).reshape(-1)
+    n = np.linalg.norm(g) if g.shape == (3,) else 0.0
+    if not np.isfinite(n) or n < 1e-6:
+        raise ValueError(f'gravity must be a finite non-zero 3-vector, got {gravity_cam}')
+    return g / n
+
+
+# --------------------------------------------------------------------------------------------
+# Stage III
+# --------------------------------------------------------------------------------------------
+
+def smallest_eigenvectors(C: np.ndarray) -> np.ndarray:
+    """Unit eigenvectors of the smallest eigenvalue of symmetric 3x3 matrices ``(..., 3, 3)``.
+
+    Closed form (trigonometric eigenvalue, then the largest cross product of two rows of
+    ``C - lambda I``), vectorised; much faster than a batched ``eigh`` on many small matrices.
+    """
+    C = np.asarray(C, dtype=np.float64)
+    a00, a01, a02 = C[..., 0, 0], C[..., 0, 1], C[..., 0, 2]
+    a11, a12, a22 = C[..., 1, 1], C[..., 1, 2], C[..., 2, 2]
+    q = (a00 + a11 + a22) / 3.0
+    p1 = a01 * a01 + a02 * a02 + a12 * a12
+    b00, b11, b22 = a00 - q, a11 - q, a22 - q
+    p2 = b00 * b00 + b11 * b11 + b22 * b22 + 2.0 * p1
+    p = np.sqrt(np.maximum(p2 / 6.0, 1e-300))
+    det = (b00 * (b11 * b22 - a12 * a12) - a01 * (a01 * b22 - a12 * a02)
+           + a02 * (a01 * a12 - b11 * a02))
+    r = np.clip(det / (2.0 * p ** 3), -1.0, 1.0)
+    phi = np.arccos(r) / 3.0
+    lam = q + 2.0 * p * np.cos(phi + 2.0 * np.pi / 3.0)
+    m0 = np.stack([a00 - lam, a01, a02], -1)
+    m1 = np.stack([a01, a11 - lam, a12], -1)
+    m2 = np.stack([a02, a12, a22 - lam], -1)
+    c = np.stack([np.cross(m0, m1), np.cross(m0, m2), np.cross(m1, m2)], -2)
+    nrm = np.einsum('...ij,...ij->...i', c, c)
+    best = np.argmax(nrm, axis=-1)
+    v = np.take_along_axis(c, best[..., None, None].repeat(3, -1), axis=-2)[..., 0, :]
+    vn = np.linalg.norm(v, axis=-1, keepdims=True)
+    out = v / np.where(vn > 0, vn, 1.0)
+    out[vn[..., 0] == 0] = np.array([0.0, 0.0, 1.0])  # isotropic: any direction
+    return out
+
+
+class IntegralMoments:
+    """Integral images of point count, sums and second moments of an organized cloud, giving the
+    covariance (hence the normal) of any axis-aligned pixel window in O(1) (paper 003, [31])."""
+
+    def __init__(self, cloud: np.ndarray) -> None:
+        cloud = _check_cloud(cloud)
+        valid = np.isfinite(cloud).all(axis=2)
+        p = np.where(valid[..., None], cloud, 0.0).astype(np.float64)
+        # Centre on the mean point to keep the second moments well conditioned.
+        self.offset = p[valid].mean(axis=0) if np.any(valid) else np.zeros(3)
+        p = np.where(valid[..., None], p - self.offset, 0.0)
+        x, y, z = p[..., 0], p[..., 1], p[..., 2]
+        ch = np.stack([valid.astype(np.float64), x, y, z, x * x, x * y, x * z, y * y, y * z,
+                       z * z], axis=-1)
+        h, w = valid.shape
+        ii = np.zeros((h + 1, w + 1, ch.shape[-1]))
+        np.cumsum(np.cumsum(ch, axis=0), axis=1, out=ii[1:, 1:])
+        self.ii = ii
+        self.shape = (h, w)
+
+    def window_normals(self, rows: np.ndarray, cols: np.ndarray, half: np.ndarray,
+                       min_points: int = 6):
+        """Normals (unit, sign arbitrary) and point counts of the windows centred at
+        ``(rows, cols)`` with half-size ``half`` [px] (clipped at the image border).
+        Windows with fewer than ``min_points`` valid points get a NaN normal."""
+        h, w = self.shape
+        r0 = np.clip(rows - half, 0, h)
+        r1 = np.clip(rows + half + 1, 0, h)
+        c0 = np.clip(cols - half, 0, w)
+        c1 = np.clip(cols + half + 1, 0, w)
+        ii = self.ii
+        s = ii[r1, c1] - ii[r0, c1] - ii[r1, c0] + ii[r0, c0]
+        n = s[:, 0]
+        ns = np.maximum(n, 1.0)
+        mx, my, mz = s[:, 1] / ns, s[:, 2] / ns, s[:, 3] / ns
+        C = np.empty((len(n), 3, 3))
+        C[:, 0, 0] = s[:, 4] / ns - mx * mx
+        C[:, 0, 1] = C[:, 1, 0] = s[:, 5] / ns - mx * my
+        C[:, 0, 2] = C[:, 2, 0] = s[:, 6] / ns - mx * mz
+        C[:, 1, 1] = s[:, 7] / ns - my * my
+        C[:, 1, 2] = C[:, 2, 1] = s[:, 8] / ns - my * mz
+        C[:, 2, 2] = s[:, 9] / ns - mz * mz
+        normals = smallest_eigenvectors(C)
+        normals[n < min_points] = np.nan
+        return normals, n
+
+
+def integral_normals(cloud_ds: np.ndarray, rows: np.ndarray, cols: np.ndarray,
+                     focal_px: float, radius_m: float, moments: Optional[IntegralMoments] = None):
+    """Step 7 at the given pixels of the downsampled cloud ``(h, w, 3)``: the r-scale normal
+    ``N`` (window side ``2 r f / Z``) and the r/2-scale normal ``N_s`` (side ``r f / Z``), both
+    oriented towards the camera (``n . p < 0``). Returns ``(N, N_s)``, ``(k, 3)`` each."""
+    if moments is None:
+        moments = IntegralMoments(cloud_ds)
+    pts = cloud_ds[rows, cols].astype(np.float64)
+    z = pts[:, 2]
+    half_large = np.maximum(np.rint(radius_m * focal_px / z), 1).astype(np.int64)
+    half_small = np.maximum(np.rint(0.5 * radius_m * focal_px / z), 1).astype(np.int64)
+    out = []
+    for half in (half_large, half_small):
+        nrm, _ = moments.window_normals(rows, cols, half)
+        flip = np.einsum('ij,ij->i', nrm, pts) > 0
+        nrm[flip] *= -1.0
+        out.append(nrm)
+    return out[0], out[1]
+
+
+# --------------------------------------------------------------------------------------------
+# Stage IV: paraboloid fit
+# --------------------------------------------------------------------------------------------
+
+@dataclass
+class ParaboloidFit:
+    """Batched paraboloid fits ``z = 0.5 (kx x^2 + ky y^2)`` in each patch frame.
+
+    Attributes (P patches):
+        vertex: (P, 3) patch frame origin [m].
+        R: (P, 3, 3) patch frame axes as columns (x, y principal directions, z normal).
+        kx, ky: (P,) principal curvatures [1/m], kx <= ky.
+        rms_algebraic: (P,) RMS of ``0.5 (kx x^2 + ky y^2) - z`` in the patch frame [m].
+        rms_euclidean: (P,) RMS first-order (Sampson) point-to-surface distance [m].
+        radius: (P,) radius [m] of the disc (in the patch x-y plane) holding 95 % of the points.
+        count: (P,) number of points fitted.
+    """
+
+    vertex: np.ndarray
+    R: np.ndarray
+    kx: np.ndarray
+    ky: np.ndarray
+    rms_algebraic: np.ndarray
+    rms_euclidean: np.ndarray
+    radius: np.ndarray
+    count: np.ndarray
+
+
+def _skew(v: np.ndarray) -> np.ndarray:
+    z = np.zeros(v.shape[:-1])
+    return np.stack([np.stack([z, -v[..., 2], v[..., 1]], -1),
+                     np.stack([v[..., 2], z, -v[..., 0]], -1),
+                     np.stack([-v[..., 1], v[..., 0], z], -1)], -2)
+
+
+def _expmap(w: np.ndarray) -> np.ndarray:
+    """Rodrigues: rotation matrices ``(..., 3, 3)`` of rotation vectors ``(..., 3)``."""
+    th = np.linalg.norm(w, axis=-1)[..., None, None]
+    K = _skew(w)
+    small = th < 1e-8
+    ths = np.where(small, 1.0, th)
+    a = np.where(small, 1.0, np.sin(ths) / ths)
+    b = np.where(small, 0.5, (1.0 - np.cos(ths)) / ths ** 2)
+    return np.eye(3) + a * K + b * (K @ K)
+
+
+def _rot_z(theta: np.ndarray) -> np.ndarray:
+    c, s = np.cos(theta), np.sin(theta)
+    z, o = np.zeros_like(c), np.ones_like(c)
+    return np.stack([np.stack([c, -s, z], -1), np.stack([s, c, z], -1),
+                     np.stack([z, z, o], -1)], -2)
+
+
+def _residuals(q: np.ndarray, kx: np.ndarray, ky: np.ndarray) -> np.ndarray:
+    return 0.5 * (kx[:, None] * q[..., 0] ** 2 + ky[:, None] * q[..., 1] ** 2) - q[..., 2]
+
+
+def fit_paraboloids(points: np.ndarray, mask: np.ndarray, up: np.ndarray,
+                    iterations: int = 6) -> ParaboloidFit:
+    """Fit one paraboloid per neighbourhood, all neighbourhoods at once.
+
+    Args:
+        points: (P, n, 3) neighbourhood points [m] (padding rows are ignored via ``mask``).
+        mask: (P, n) bool, True for real points (each patch needs >= 6).
+        up: (3,) or (P, 3) direction the patch normals should point to (e.g. ``-gravity``).
+        iterations: Levenberg-Marquardt iterations after the closed-form start.
+
+    Closed-form start: PCA frame at the centroid, linear least squares of the general quadric
+    ``z = a x^2 + b xy + c y^2 + d x + e y + f``; its tangent tilt, height and Hessian give the
+    initial pose and curvatures. LM then minimises the algebraic residual
+    ``0.5 (kx x^2 + ky y^2) - z`` over (kx, ky, rotation, offset h along the normal), the vertex
+    constrained to ``centroid + h * normal`` so the patch stays centred on its data.
+    """
+    P = np.asarray(points, dtype=np.float64)
+    M = np.asarray(mask, dtype=bool)
+    if P.ndim != 3 or P.shape[2] != 3 or M.shape != P.shape[:2]:
+        raise ValueError(f'points must be (P, n, 3) with a (P, n) mask, got {P.shape} and '
+                         f'{M.shape}')
+    cnt = M.sum(axis=1)
+    if np.any(cnt < 6):
+        raise ValueError(f'every neighbourhood needs >= 6 points, the smallest has {cnt.min()}')
+    npatch = P.shape[0]
+    up = np.broadcast_to(np.asarray(up, dtype=np.float64), (npatch, 3))
+    W = M.astype(np.float64)
+    P = np.where(M[..., None], P, 0.0)
+    c = (P * W[..., None]).sum(1) / cnt[:, None]
+    d = (P - c[:, None]) * W[..., None]
+    cov = (d.transpose(0, 2, 1) @ d) / cnt[:, None, None]
+    n0 = smallest_eigenvectors(cov)
+    n0[np.einsum('pi,pi->p', n0, up) < 0] *= -1.0
+    # PCA frame with z = normal
+    helper = np.where(np.abs(n0[:, :1]) < 0.9, np.array([1.0, 0, 0]), np.array([0, 1.0, 0]))
+    x0 = np.cross(helper, n0)
+    x0 /= np.linalg.norm(x0, axis=1, keepdims=True)
+    y0 = np.cross(n0, x0)
+    Rp = np.stack([x0, y0, n0], axis=-1)
+    q = d @ Rp
+    qx, qy, qz = q[..., 0], q[..., 1], q[..., 2]
+    A = np.stack([qx * qx, qx * qy, qy * qy, qx, qy, np.ones_like(qx)], -1) * W[..., None]
+    At = A.transpose(0, 2, 1)
+    AtA = At @ A
+    Atb = (At @ (qz * W)[..., None])[..., 0]
+    scale = np.maximum(np.trace(AtA, axis1=1, axis2=2), 1e-12)[:, None, None]
+    sol = np.linalg.solve(AtA + 1e-9 * scale * np.eye(6), Atb[..., None])[..., 0]
+    a, b, cc, dx, dy, f0 = sol.T
+    # Tilt the normal to the quadric's normal at the origin, then align x, y with the principal
+    # directions of its Hessian.
+    tilt_n = np.stack([-dx, -dy, np.ones_like(dx)], -1)
+    tilt_n /= np.linalg.norm(tilt_n, axis=1, keepdims=True)
+    axis = np.cross(np.array([0.0, 0.0, 1.0]), tilt_n)
+    s = np.linalg.norm(axis, axis=1, keepdims=True)
+    ang = np.arctan2(s[:, 0], tilt_n[:, 2])
+    Rt = _expmap(np.where(s > 1e-12, axis / np.where(s > 0, s, 1.0), 0.0) * ang[:, None])
+    theta = 0.5 * np.arctan2(b, a - cc)  # principal direction of [[2a, b], [b, 2c]]
+    R = Rp @ Rt @ _rot_z(theta)
+    ct, st = np.cos(theta), np.sin(theta)
+    kx = 2 * a * ct * ct + 2 * b * ct * st + 2 * cc * st * st
+    ky = 2 * a * st * st - 2 * b * ct * st + 2 * cc * ct * ct
+    h = f0 * np.cos(ang)
+
+    def local(R, h):
+        q = d @ R
+        q[..., 2] -= h[:, None]
+        return q
+
+    def cost(R, h, kx, ky):
+        r = _residuals(local(R, h), kx, ky) * W
+        return (r * r).sum(1)
+
+    lam = np.full(npatch, 1e-3)
+    ql = local(R, h)
+    cur = cost(R, h, kx, ky)
+    for _ in range(iterations):
+        r = _residuals(ql, kx, ky) * W
+        g = np.stack([kx[:, None] * ql[..., 0], ky[:, None] * ql[..., 1],
+                      -np.ones_like(ql[..., 0])], -1)
+        q0 = ql + h[:, None, None] * np.array([0, 0, 1.0])  # R^T (p - c)
+        J = np.empty(ql.shape[:2] + (6,))
+        J[..., 0] = 0.5 * ql[..., 0] ** 2
+        J[..., 1] = 0.5 * ql[..., 1] ** 2
+        J[..., 2:5] = np.cross(g, q0)  # d r / d omega = g^T [q0]x = (g x q0)^T
+        J[..., 5] = 1.0
+        J *= W[..., None]
+        Jt = J.transpose(0, 2, 1)
+        H = Jt @ J
+        grad = (Jt @ r[..., None])[..., 0]
+        diag = np.einsum('pii->pi', H)
+        Hd = H + (lam[:, None] * np.maximum(diag, 1e-12))[:, :, None] * np.eye(6)
+        step = -np.linalg.solve(Hd, grad[..., None])[..., 0]
+        R_new = R @ _expmap(step[:, 2:5])
+        kx_new, ky_new, h_new = kx + step[:, 0], ky + step[:, 1], h + step[:, 5]
+        new = cost(R_new, h_new, kx_new, ky_new)
+        ok = new < cur
+        R = np.where(ok[:, None, None], R_new, R)
+        kx, ky, h = np.where(ok, kx_new, kx), np.where(ok, ky_new, ky), np.where(ok, h_new, h)
+        cur = np.where(ok, new, cur)
+        lam = np.clip(np.where(ok, lam * 0.1, lam * 10.0), 1e-9, 1e9)
+        ql = local(R, h)
+    # Order kx <= ky: swap by a +90 deg turn about the normal (x' = y, y' = -x).
+    swap = kx > ky
+    R = np.where(swap[:, None, None], R @ _rot_z(np.full(npatch, np.pi / 2)), R)
+    kx, ky = np.where(swap, ky, kx), np.where(swap, kx, ky)
+    ql = local(R, h)
+    r = _residuals(ql, kx, ky)
+    gn = np.sqrt((kx[:, None] * ql[..., 0]) ** 2 + (ky[:, None] * ql[..., 1]) ** 2 + 1.0)
+    rms_alg = np.sqrt(((r * W) ** 2).sum(1) / cnt)
+    rms_euc = np.sqrt(((r / gn * W) ** 2).sum(1) / cnt)
+    rad = np.sort(np.where(M, np.hypot(ql[..., 0], ql[..., 1]), np.inf), axis=1)
+    radius = np.take_along_axis(rad, np.floor(0.95 * (cnt - 1)).astype(np.int64)[:, None],
+                                axis=1)[:, 0]
+    vertex = c + h[:, None] * R[:, :, 2]
+    return ParaboloidFit(vertex, R, kx, ky, rms_alg, rms_euc, radius, cnt)
+
+
+# --------------------------------------------------------------------------------------------
+# The whole pipeline
+# --------------------------------------------------------------------------------------------
+
+@dataclass
+class PatchSet:
+    """Contact patches found in one frame (all in the cloud's frame).
+
+    Attributes (N patches):
+        vertex (N, 3) [m], R (N, 3, 3) (columns x, y, normal), kx, ky (N,) [1/m] (kx <= ky),
+        radius (N,) [m], residual (N,) RMS Euclidean residual [m], don, dong (N,) [rad],
+        fixation_distance (N,) [m], support_points (N,) int.
+        gravity: (3,) unit gravity used; fixation: (3,) fixation point [m].
+        counts: how many candidates survived each step (for diagnostics and benchmarks).
+    """
+
+    vertex: np.ndarray
+    R: np.ndarray
+    kx: np.ndarray
+    ky: np.ndarray
+    radius: np.ndarray
+    residual: np.ndarray
+    don: np.ndarray
+    dong: np.ndarray
+    fixation_distance: np.ndarray
+    support_points: np.ndarray
+    gravity: np.ndarray
+    fixation: np.ndarray
+    counts: Dict[str, int] = dataclasses.field(default_factory=dict)
+    timings_ms: Dict[str, float] = dataclasses.field(default_factory=dict)
+
+    def __len__(self) -> int:
+        return int(self.vertex.shape[0])
+
+    @property
+    def normal(self) -> np.ndarray:
+        """(N, 3) unit patch normals (away from the terrain)."""
+        return self.R[:, :, 2]
+
+    def subset(self, keep: np.ndarray) -> 'PatchSet':
+        keep = np.asarray(keep)
+        fields = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
+        for k in ('vertex', 'R', 'kx', 'ky', 'radius', 'residual', 'don', 'dong',
+                  'fixation_distance', 'support_points'):
+            fields[k] = fields[k][keep]
+        fields['counts'] = dict(self.counts)
+        fields['timings_ms'] = dict(self.timings_ms)
+        return PatchSet(**fields)
+
+    def transformed(self, T: np.ndarray) -> 'PatchSet':
+        """The same patches with poses mapped by the 4x4 transform ``T`` (e.g. ``T_map_cam``)."""
+        T = np.asarray(T, dtype=np.float64)
+        out = self.subset(np.arange(len(self)))
+        out.vertex = self.vertex @ T[:3, :3].T + T[:3, 3]
+        out.R = T[:3, :3] @ self.R
+        out.gravity = T[:3, :3] @ self.gravity
+        out.fixation = T[:3, :3] @ self.fixation + T[:3, 3]
+        return out
+
+    def boundary(self, n: int = 16) -> np.ndarray:
+        """(N, n, 3) points on each patch's rim (radius ``radius`` in the patch x-y plane)."""
+        a = np.linspace(0.0, 2 * np.pi, n, endpoint=False)
+        x = self.radius[:, None] * np.cos(a)
+        y = self.radius[:, None] * np.sin(a)
+        z = 0.5 * (self.kx[:, None] * x * x + self.ky[:, None] * y * y)
+        loc = np.stack([x, y, z], -1)
+        return np.einsum('pij,pnj->pni', self.R, loc) + self.vertex[:, None]
+
+
+def _empty_patches(gravity, fixation, counts, timings) -> PatchSet:
+    z = np.zeros(0)
+    return PatchSet(np.zeros((0, 3)), np.zeros((0, 3, 3)), z, z, z, z, z, z, z,
+                    np.zeros(0, np.int64), gravity, fixation, counts, timings)
+
+
+def _sample_neighbourhoods(cloud: np.ndarray, seeds_rc_full: np.ndarray, seed_pts: np.ndarray,
+                           fx: float, fy: float, cfg: PatchConfig, rng: np.random.Generator):
+    """Step 11: organized search. For each seed draw random pixels in the image window that
+    bounds its r-ball, keep those whose points lie within r, at most n_f of them."""
+    h, w = cloud.shape[:2]
+    ns, nf = len(seed_pts), cfg.max_neighbours
+    k = nf * cfg.neighbour_draws
+    r = cfg.patch_radius_m
+    z = seed_pts[:, 2]
+    hu = np.maximum(r * fx / z, 1.0)[:, None]
+    hv = np.maximum(r * fy / z, 1.0)[:, None]
+    du = (rng.random((ns, k)) * 2.0 - 1.0) * hu
+    dv = (rng.random((ns, k)) * 2.0 - 1.0) * hv
+    rr = np.clip(np.rint(seeds_rc_full[:, :1] + dv), 0, h - 1).astype(np.int64)
+    cc = np.clip(np.rint(seeds_rc_full[:, 1:] + du), 0, w - 1).astype(np.int64)
+    pts = cloud[rr, cc].astype(np.float64)
+    d2 = ((pts - seed_pts[:, None]) ** 2).sum(-1)
+    ok = np.isfinite(d2) & (d2 <= r * r)
+    rank = np.cumsum(ok, axis=1)
+    ok &= rank <= nf
+    # Compact the first n_f accepted draws of every row to the front.
+    order = np.argsort(~ok, axis=1, kind='stable')[:, :nf]
+    nb = np.take_along_axis(pts, order[..., None], axis=1)
+    mask = np.take_along_axis(ok, order, axis=1)
+    return nb, mask
+
+
+def find_patches(cloud: np.ndarray, fx: float, fy: float, gravity_cam: np.ndarray,
+                 cfg: PatchConfig = PatchConfig(), rng: Optional[np.random.Generator] = None,
+                 timing: bool = False) -> PatchSet:
+    """Run steps 3-14 on one organized cloud.
+
+    Args:
+        cloud: (H, W, 3) points in the camera optical frame [m], NaN = invalid (step 2's ``C``).
+        fx, fy: focal lengths of the cloud's camera at its resolution [px].
+        gravity_cam: (3,) gravity direction (down) in the camera frame (see
+            :func:`gravity_in_camera`).
+        cfg: parameters.
+        rng: random generator for steps 10-11 (default: seeded from ``cfg.random_seed``).
+        timing: record per-stage wall times in ``PatchSet.timings_ms`` (benchmarks only).
+
+    Returns:
+        The accepted patches in the camera frame. No valid seeds is not an error: the result is
+        empty and ``counts`` says which step removed them.
+    """
+    import time
+    clock = time.perf_counter if timing else (lambda: 0.0)
+    t0 = clock()
+    if not (np.isfinite(fx) and np.isfinite(fy)) or fx <= 0 or fy <= 0:
+        raise ValueError(f'focal lengths must be positive, got fx={fx}, fy={fy}')
+    g = _unit_gravity(gravity_cam)
+    rng = rng if rng is not None else np.random.default_rng(cfg.random_seed)
+    fix = fixation_point(g, cfg)
+    counts: Dict[str, int] = {}
+    times: Dict[str, float] = {}
+    # Stage I
+    C = bilateral_filter_cloud(cloud, cfg)
+    D = median_downsample_2x2(C)
+    t1 = clock()
+    times['stage1_ms'] = 1e3 * (t1 - t0)
+    # Stage II: seeds within R of the fixation point
+    dist = np.linalg.norm(D.astype(np.float64) - fix, axis=2)
+    in_roi = np.isfinite(dist) & (dist <= cfg.roi_radius_m)
+    rows, cols = np.nonzero(in_roi)
+    counts['valid_points'] = int(np.isfinite(D[..., 2]).sum())
+    counts['dtfp'] = int(len(rows))
+    # Stage III
+    if len(rows):
+        N, Ns = integral_normals(D, rows, cols, 0.5 * fx, cfg.patch_radius_m)
+        cos_don = np.einsum('ij,ij->i', N, Ns)
+        cos_dong = -N @ g
+        ok_don = np.isfinite(cos_don) & (cos_don >= np.cos(np.radians(cfg.max_don_deg)))
+        ok = ok_don & (cos_dong >= np.cos(np.radians(cfg.max_dong_deg)))
+        counts['don'] = int(ok_don.sum())
+        counts['dong'] = int(ok.sum())
+    else:
+        ok = np.zeros(0, bool)
+        counts['don'] = counts['dong'] = 0
+    t2 = clock()
+    times['stage23_ms'] = 1e3 * (t2 - t1)
+    idx = np.nonzero(ok)[0]
+    # Stage IV
+    if len(idx) > cfg.max_seeds:  # step 10
+        idx = rng.choice(idx, cfg.max_seeds, replace=False)
+    counts['seeds'] = int(len(idx))
+    if len(idx) == 0:
+        times['stage4_ms'] = 0.0
+        return _empty_patches(g, fix, counts, times)
+    seed_pts = D[rows[idx], cols[idx]].astype(np.float64)
+    # Seed pixel of the downsampled image -> centre of its 2x2 block at full resolution.
+    seeds_full = np.stack([2 * rows[idx] + 0.5, 2 * cols[idx] + 0.5], -1)
+    nb, mask = _sample_neighbourhoods(C, seeds_full, seed_pts, fx, fy, cfg, rng)
+    enough = mask.sum(1) >= cfg.min_neighbours
+    counts['neighbourhoods'] = int(enough.sum())
+    sel = idx[enough]
+    if len(sel) == 0:
+        times['stage4_ms'] = 1e3 * (clock() - t2)
+        return _empty_patches(g, fix, counts, times)
+    fit = fit_paraboloids(nb[enough], mask[enough], -g, cfg.lm_iterations)
+    curv_ok = (fit.kx >= cfg.kappa_min_per_m) & (fit.ky <= cfg.kappa_max_per_m)
+    res_ok = fit.rms_euclidean <= cfg.max_residual_m
+    keep = curv_ok & res_ok
+    counts['curvature'] = int(curv_ok.sum())
+    counts['patches'] = int(keep.sum())
+    k = sel[keep]
+    don = np.arccos(np.clip(cos_don[k], -1, 1))
+    dong = np.arccos(np.clip(cos_dong[k], -1, 1))
+    times['stage4_ms'] = 1e3 * (clock() - t2)
+    return PatchSet(fit.vertex[keep], fit.R[keep], fit.kx[keep], fit.ky[keep],
+                    fit.radius[keep], fit.rms_euclidean[keep], don, dong,
+                    np.linalg.norm(fit.vertex[keep] - fix, axis=1), fit.count[keep], g, fix,
+                    counts, times)
