@@ -1,0 +1,614 @@
+"""Filling occluded parts of a height map: Fill-Terrain under line-of-sight constraints (paper
+000, section III, Fig. 6) and the baselines of its Table I plus two more.
+
+Grids follow the project convention: ``heights[i, j]`` [m] with ``i`` along +x, ``j`` along +y,
+NaN = unknown, cell ``[i, j]`` centred at ``origin_xy + (i + 0.5, j + 0.5) * resolution_m``.
+
+Line-of-sight upper bounds (:func:`line_of_sight_bounds`)
+    A camera at ``c`` that observed a surface point ``p`` saw nothing between them, so every cell
+    the segment ``c -> p`` passes over has its height below the segment there. Each ray's x-y
+    footprint is rasterised through the grid (samples every ``step_cells`` cells) and the bound
+    of a cell is the running minimum of the ray heights over all rays that crossed it. The cell
+    that holds ``p`` itself is skipped (the ray ends on its surface). Cells never crossed have
+    no bound (NaN).
+
+Fill-Terrain (:func:`fill_terrain`), Fig. 6, for a missing cell with window ``A`` (w x w around
+it), known mask ``B``, bound window ``A_bar``, weighting matrix ``W`` and ``n`` random library
+patches ``C_k``::
+
+    m   = sum B
+    b_k = sum B (A - C_k) / m
+    h_k = C_k[centre] + b_k
+    s_k = sum W B (C_k - A + b_k)^2
+    v_k = sum max(C_k + b_k - A_bar, 0)^2        (over window cells that have a bound)
+    H[x, y] = h_k*,  k* = argmin_{k: v_k = 0} s_k  if any v_k = 0, else argmin_k v_k
+
+The printed Fig. 6 writes the violation as ``max{B (C - A_bar + b)^2, 0}``, which is never
+negative, so the ``max`` could never act and a perfect fit would count as a violation; we read it
+as the squared amount by which the shifted patch rises above the bound, which is what the text
+("how much the library patch violates the height constraints") describes.
+
+Fill order. The issue asks for the cells with the most known neighbours first, with filled cells
+counting as known afterwards. To fill many cells at once and still get the same map as a
+one-cell-at-a-time loop, cells are filled in *rounds*: in each round every missing cell whose
+``(known count in its window, rank)`` key is larger than that of every other missing cell in its
+w x w window is filled (the rank is a seeded random permutation that breaks ties). Two cells of
+one round are never inside each other's window, so filling them one after another or all at
+once reads the same heights: the order is the same whichever way it is executed.
+
+Random numbers (identical for the vectorised code and ``test/fill_reference.py``): one
+``rng.permutation(nx * ny)`` for the ranks, then per round, for the selected cells in increasing
+flat index, ``n`` doubles ``rng.random()`` each (one block ``rng.random((cells, n))``), each
+mapped to one of all valid w x w patch positions of the library (terrains concatenated in order,
+positions in row-major order): ``pos = floor(u * total_positions)``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import List, Optional, Sequence, Tuple
+
+import numpy as np
+from scipy import ndimage
+
+from terrain_perception.config import param
+
+FILL_METHODS = ('fill_terrain', 'texture_synthesis', 'constraints_as_heights', 'constant',
+                'inpaint', 'shao_rows', 'none')
+
+
+# --------------------------------------------------------------------------------------------
+# configuration
+# --------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class FillConfig:
+    """Parameters of the fill methods. Windows are in cells (the library is at the map's
+    resolution, so a cell count is what the algorithm really uses)."""
+
+    method: str = param('fill_terrain', 'fill method: ' + ', '.join(FILL_METHODS),
+                        choices=FILL_METHODS)
+    window_cells: int = param(
+        5, 'Fig. 6 window w [cells], odd; 5 cells at 5 mm is one LittleDog foot (2.5 cm)', 3, 31)
+    samples: int = param(
+        100, 'Fig. 6 n: random library patches drawn per missing cell [-]', 1, 100000)
+    weight_sigma_cells: float = param(
+        1.5, 'std of the Gaussian weighting matrix W [cells] (Efros-Leung use w/6.4; a wider '
+        'one favours the window as a whole)', 0.1, 100.0)
+    seed: int = param(0, 'seed of the random patch draws and the tie-breaking ranks', 0)
+    batch_cells: int = param(
+        4096, 'largest number of cells evaluated in one vectorised block (memory bound: '
+        'batch * samples * w^2 doubles)', 1, 10 ** 7)
+    inpaint_radius_cells: float = param(
+        3.0, 'inpaint baseline: neighbourhood radius of cv2.inpaint [cells]', 1.0, 50.0)
+    inpaint_flags: str = param(
+        'ns', 'inpaint baseline: ns (Navier-Stokes, on float32 heights) or telea (on 16-bit '
+        'heights: OpenCV 5.0 Telea is wrong on float32)', choices=('telea', 'ns'))
+    shao_row_axis: int = param(
+        1, 'Shao baseline: grid axis along which a "row" runs (1 = along y, i.e. a line of '
+        'constant x, the grid analogue of an image row of a forward-looking camera)', 0, 1)
+
+
+@dataclass(frozen=True)
+class BoundsConfig:
+    """Parameters of :func:`line_of_sight_bounds`."""
+
+    step_cells: float = param(
+        0.5, 'spacing of the samples along each ray footprint [cells]; <= 0.5 visits every '
+        'cell a ray crosses except corner clips (which then just get no bound from that ray)',
+        0.05, 1.0)
+    margin_m: float = param(
+        0.0, 'added to every bound [m]; > 0 tolerates noisy points or poses', 0.0, 1.0)
+    chunk_samples: int = param(
+        4_000_000, 'ray samples processed per block (memory bound)', 1000, 10 ** 9)
+
+
+@dataclass
+class FillResult:
+    """Output of a fill method.
+
+    Attributes:
+        heights: (nx, ny) float64 heights [m]; observed cells unchanged; NaN where the method
+            leaves a cell unknown (only ``none``).
+        filled: (nx, ny) bool, True where the height was synthesised.
+        rounds: number of fill rounds (Fill-Terrain), 0 otherwise.
+        choice: (nx, ny) int64 global library position chosen per filled cell (-1 elsewhere);
+            Fill-Terrain only, for comparing implementations.
+    """
+
+    heights: np.ndarray
+    filled: np.ndarray
+    rounds: int = 0
+    choice: Optional[np.ndarray] = None
+
+
+# --------------------------------------------------------------------------------------------
+# input checks
+# --------------------------------------------------------------------------------------------
+def check_heights(heights: np.ndarray, name: str = 'heights') -> np.ndarray:
+    """float64 copy of a 2-D height map; ValueError on wrong shape, inf, or no known cell."""
+    h = np.array(heights, dtype=np.float64)
+    if h.ndim != 2 or h.size == 0:
+        raise ValueError(f'{name} must be a non-empty 2-D (nx, ny) array, got shape {h.shape}')
+    if np.isinf(h).any():
+        raise ValueError(f'{name} contain +-inf in {int(np.isinf(h).sum())} cells; '
+                         'use NaN for unknown cells')
+    if not np.isfinite(h).any():
+        raise ValueError(f'{name}: every cell is unknown, there is nothing to fill from')
+    return h
+
+
+def check_bounds(heights: np.ndarray, upper_bound: Optional[np.ndarray],
+                 tol_m: float = 1e-6) -> np.ndarray:
+    """float64 bound map (+inf = no bound) checked against the heights.
+
+    Raises ValueError when the shapes differ, a bound is -inf, or an observed height lies more
+    than ``tol_m`` above its bound (the bounds and the heights then cannot both be right).
+    """
+    if upper_bound is None:
+        return np.full(heights.shape, np.inf)
+    ub = np.array(upper_bound, dtype=np.float64)
+    if ub.shape != heights.shape:
+        raise ValueError(f'upper_bound has shape {ub.shape}, heights {heights.shape}')
+    if np.isneginf(ub).any():
+        raise ValueError('upper_bound contains -inf')
+    ub = np.where(np.isnan(ub), np.inf, ub)
+    with np.errstate(invalid='ignore'):
+        bad = np.isfinite(heights) & (heights > ub + tol_m)
+    if bad.any():
+        i, j = np.argwhere(bad)[0]
+        raise ValueError(f'{int(bad.sum())} observed heights lie above their line-of-sight '
+                         f'upper bound (e.g. cell [{i}, {j}]: height {heights[i, j]:.4f} m > '
+                         f'bound {ub[i, j]:.4f} m)')
+    return ub
+
+
+# --------------------------------------------------------------------------------------------
+# line-of-sight bounds
+# --------------------------------------------------------------------------------------------
+def line_of_sight_bounds(shape: Tuple[int, int], resolution_m: float, origin_xy: Sequence[float],
+                         origins: np.ndarray, points: np.ndarray,
+                         config: BoundsConfig = BoundsConfig()) -> np.ndarray:
+    """Upper bounds H-bar [m] from rays camera -> observed point (paper 000, sec. III, Fig. 5).
+
+    Args:
+        shape: (nx, ny) of the grid.
+        resolution_m: cell edge [m/cell].
+        origin_xy: world (x, y) of the grid's minimum corner [m].
+        origins: (N, 3) or (3,) camera positions [m] in the grid frame, one per ray or one for
+            all.
+        points: (N, 3) observed surface points [m] in the grid frame (NaN rows are skipped).
+        config: sampling step, safety margin, memory chunk.
+
+    Returns:
+        (nx, ny) float64 bound [m]; NaN where no ray passed over the cell.
+    """
+    nx, ny = (int(v) for v in shape)
+    pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    org = np.asarray(origins, dtype=np.float64)
+    if org.ndim == 1:
+        org = np.broadcast_to(org.reshape(1, 3), pts.shape)
+    org = org.reshape(-1, 3)
+    if org.shape != pts.shape:
+        raise ValueError(f'origins {org.shape} and points {pts.shape} do not pair up')
+    ok = np.isfinite(pts).all(1) & np.isfinite(org).all(1)
+    pts, org = pts[ok], org[ok]
+    bound = np.full(nx * ny, np.inf)
+    if len(pts) == 0:
+        return np.full((nx, ny), np.nan)
+    o_xy = np.asarray(origin_xy, dtype=np.float64)
+    # continuous cell coordinates: cell [i, j] spans [i, i+1) x [j, j+1)
+    a = (org[:, :2] - o_xy) / resolution_m
+    p = (pts[:, :2] - o_xy) / resolution_m
+    length = np.linalg.norm(p - a, axis=1)
+    nsamp = np.maximum(np.ceil(length / config.step_cells).astype(np.int64), 1) + 1
+    end_cell = np.floor(p).astype(np.int64)
+    start = 0
+    cums = np.cumsum(nsamp)
+    while start < len(pts):
+        # rays [start, stop) hold at most chunk_samples samples (at least one ray)
+        base = cums[start - 1] if start else 0
+        stop = int(np.searchsorted(cums, base + config.chunk_samples, side='right'))
+        stop = max(stop, start + 1)
+        ns = nsamp[start:stop]
+        ray = np.repeat(np.arange(start, stop), ns)
+        first = np.repeat(np.cumsum(ns) - ns, ns)
+        t = (np.arange(ray.size) - first) / (nsamp[ray] - 1).astype(np.float64)
+        xy = a[ray] + t[:, None] * (p[ray] - a[ray])
+        z = org[ray, 2] + t * (pts[ray, 2] - org[ray, 2])
+        ij = np.floor(xy).astype(np.int64)
+        keep = ((ij[:, 0] >= 0) & (ij[:, 0] < nx) & (ij[:, 1] >= 0) & (ij[:, 1] < ny)
+                & ~((ij[:, 0] == end_cell[ray, 0]) & (ij[:, 1] == end_cell[ray, 1])))
+        flat = ij[keep, 0] * ny + ij[keep, 1]
+        np.minimum.at(bound, flat, z[keep])
+        start = stop
+    bound = bound.reshape(nx, ny) + config.margin_m
+    return np.where(np.isfinite(bound), bound, np.nan)
+
+
+def rays_from_captures(heights: np.ndarray, resolution_m: float, origin_xy: Sequence[float],
+                       camera_positions: np.ndarray, max_range_m: float = 2.0,
+                       tol_m: float = 0.002, stride: int = 1,
+                       step_cells: float = 0.5) -> Tuple[np.ndarray, np.ndarray]:
+    """Rays (camera, point) for a map that does not record which camera saw which cell.
+
+    Pairs every camera position with every observed cell centre (at its height) within
+    ``max_range_m`` and keeps a pair only if the segment passes above every *observed* cell it
+    crosses (within ``tol_m``), i.e. if it could have been a line of sight. Cells on the edge
+    of an unknown region are always used; the others every ``stride``-th in each axis.
+
+    Returns:
+        (origins (N, 3), points (N, 3)) [m] in the grid frame, for :func:`line_of_sight_bounds`.
+
+    Note: an unobserved occluder between a kept pair is undetectable here, so this is weaker
+    than the true rays; feed the real (camera, point) pairs when they are available.
+    """
+    h = np.asarray(heights, dtype=np.float64)
+    nx, ny = h.shape
+    cams = np.asarray(camera_positions, dtype=np.float64).reshape(-1, 3)
+    cams = cams[np.isfinite(cams).all(1)]
+    known = np.isfinite(h)
+    edge = known & ndimage.binary_dilation(~known, np.ones((3, 3), bool))
+    sub = np.zeros_like(known)
+    sub[::stride, ::stride] = True
+    use = known & (edge | sub)
+    ii, jj = np.nonzero(use)
+    o_xy = np.asarray(origin_xy, dtype=np.float64)
+    cell_pts = np.c_[o_xy[0] + (ii + 0.5) * resolution_m, o_xy[1] + (jj + 0.5) * resolution_m,
+                     h[ii, jj]]
+    out_o, out_p = [], []
+    for c in cams:  # one camera at a time keeps memory at (cells x samples)
+        d = np.linalg.norm(cell_pts - c, axis=1)
+        pts = cell_pts[d <= max_range_m]
+        if len(pts) == 0:
+            continue
+        a = (c[:2] - o_xy) / resolution_m
+        p = (pts[:, :2] - o_xy) / resolution_m
+        ns = np.maximum(np.ceil(np.linalg.norm(p - a, axis=1) / step_cells), 1).astype(int) + 1
+        ray = np.repeat(np.arange(len(pts)), ns)
+        first = np.repeat(np.cumsum(ns) - ns, ns)
+        t = (np.arange(ray.size) - first) / (ns[ray] - 1).astype(np.float64)
+        xy = a + t[:, None] * (p[ray] - a)
+        z = c[2] + t * (pts[ray, 2] - c[2])
+        ij = np.floor(xy).astype(np.int64)
+        inside = (ij[:, 0] >= 0) & (ij[:, 0] < nx) & (ij[:, 1] >= 0) & (ij[:, 1] < ny)
+        hz = np.full(ray.size, np.nan)
+        hz[inside] = h[ij[inside, 0], ij[inside, 1]]
+        end = np.floor(p).astype(np.int64)[ray]
+        at_end = (ij[:, 0] == end[:, 0]) & (ij[:, 1] == end[:, 1])
+        blocked = np.isfinite(hz) & ~at_end & (hz > z + tol_m)
+        bad = np.bincount(ray, weights=blocked, minlength=len(pts)) > 0
+        out_o.append(np.broadcast_to(c, (int((~bad).sum()), 3)))
+        out_p.append(pts[~bad])
+    if not out_p:
+        return np.zeros((0, 3)), np.zeros((0, 3))
+    return np.concatenate(out_o), np.concatenate(out_p)
+
+
+# --------------------------------------------------------------------------------------------
+# the library
+# --------------------------------------------------------------------------------------------
+class PatchLibrary:
+    """All w x w patches of a list of fully known height maps, addressed by one global index.
+
+    Position ``g`` (0 <= g < total) runs over the terrains in order and, inside a terrain, over
+    patch corners ``(i, j)`` in row-major order.
+    """
+
+    def __init__(self, terrains: Sequence[np.ndarray], w: int,
+                 bank_max_mb: float = 256.0) -> None:
+        if w < 1 or w % 2 == 0:
+            raise ValueError(f'window must be a positive odd number of cells, got {w}')
+        if terrains is None or len(terrains) == 0:
+            raise ValueError('the terrain library is empty')
+        self.w = int(w)
+        flats, self.starts, self.counts, self.pcols, self.strides, self.bases = [], [], [], [], \
+            [], []
+        total, base = 0, 0
+        for k, t in enumerate(terrains):
+            t = np.asarray(t, dtype=np.float64)
+            if t.ndim != 2:
+                raise ValueError(f'library terrain {k} is not 2-D (shape {t.shape})')
+            if not np.isfinite(t).all():
+                raise ValueError(f'library terrain {k} has {int((~np.isfinite(t)).sum())} '
+                                 'unknown or infinite cells; the library must be fully known')
+            if t.shape[0] < w or t.shape[1] < w:
+                raise ValueError(f'library terrain {k} ({t.shape}) is smaller than the '
+                                 f'{w}x{w} window')
+            pr, pc = t.shape[0] - w + 1, t.shape[1] - w + 1
+            self.starts.append(total)
+            self.counts.append(pr * pc)
+            self.pcols.append(pc)
+            self.strides.append(t.shape[1])
+            self.bases.append(base)
+            flats.append(t.ravel())
+            total += pr * pc
+            base += t.size
+        self.total = total
+        self.flat = np.concatenate(flats)
+        self.starts = np.asarray(self.starts, np.int64)
+        self.pcols = np.asarray(self.pcols, np.int64)
+        self.strides = np.asarray(self.strides, np.int64)
+        self.bases = np.asarray(self.bases, np.int64)
+        du, dv = np.meshgrid(np.arange(w), np.arange(w), indexing='ij')
+        self._du, self._dv = du.ravel(), dv.ravel()
+        # Every patch as one contiguous row: a sample is then one row copy instead of w*w
+        # scattered reads (about 2x faster to gather), at total * w^2 * 8 bytes of memory.
+        self.bank = None
+        if total * w * w * 8 <= bank_max_mb * 1e6:
+            from numpy.lib.stride_tricks import sliding_window_view
+            self.bank = np.concatenate([
+                sliding_window_view(np.asarray(t, np.float64), (w, w)).reshape(-1, w * w)
+                for t in terrains])
+
+    def positions(self, u: np.ndarray) -> np.ndarray:
+        """Global patch positions from uniform doubles ``u`` in [0, 1)."""
+        return np.minimum((u * self.total).astype(np.int64), self.total - 1)
+
+    def patches(self, g: np.ndarray) -> np.ndarray:
+        """Patches ``(..., w*w)`` (row-major) at global positions ``g`` ``(...)``."""
+        g = np.asarray(g, np.int64)
+        if self.bank is not None:
+            return np.take(self.bank, g, axis=0)
+        t = np.searchsorted(self.starts, g, side='right') - 1
+        local = g - self.starts[t]
+        i, j = np.divmod(local, self.pcols[t])
+        corner = self.bases[t] + i * self.strides[t] + j
+        idx = corner[..., None] + self._du * self.strides[t][..., None] + self._dv
+        return self.flat[idx]
+
+
+def gaussian_weights(w: int, sigma_cells: float) -> np.ndarray:
+    """The w x w weighting matrix W of Fig. 6: a Gaussian of ``sigma_cells`` [cells]."""
+    u = np.arange(w) - (w - 1) / 2.0
+    g = np.exp(-0.5 * (u / sigma_cells) ** 2)
+    return np.outer(g, g)
+
+
+# --------------------------------------------------------------------------------------------
+# Fill-Terrain
+# --------------------------------------------------------------------------------------------
+def select_round(known: np.ndarray, rank: np.ndarray, w: int) -> np.ndarray:
+    """Flat indices (ascending) of the cells filled in this round (see module docstring).
+
+    A missing cell is selected when its key ``known_count * N + rank`` (N = cells in the map)
+    beats every other missing cell in its w x w window; cells with no known cell in their
+    window wait. Works on the bounding box of the missing cells plus the window margin.
+    """
+    import cv2
+    nx, ny = known.shape
+    r = w // 2
+    miss_i = np.flatnonzero((~known).any(1))
+    miss_j = np.flatnonzero((~known).any(0))
+    i0, i1 = max(miss_i[0] - r, 0), min(miss_i[-1] + r + 1, nx)
+    j0, j1 = max(miss_j[0] - r, 0), min(miss_j[-1] + r + 1, ny)
+    kn = known[i0:i1, j0:j1]
+    # exact small-integer counts in float32; outside the grid counts as unknown
+    count = cv2.boxFilter(kn.astype(np.float32), -1, (w, w), normalize=False,
+                          borderType=cv2.BORDER_CONSTANT)
+    cand = ~kn & (count > 0.5)
+    key = np.where(cand, np.rint(count).astype(np.float64) * known.size + rank[i0:i1, j0:j1],
+                   -1.0)
+    local_max = cv2.dilate(key, np.ones((w, w), np.uint8), borderType=cv2.BORDER_CONSTANT,
+                           borderValue=-1.0)
+    li, lj = np.nonzero(cand & (key == local_max))
+    return (li + i0) * ny + (lj + j0)
+
+
+def _choose(A, B, Abar, C, W):
+    """Fig. 6 steps 2-3 for a block of S cells.
+
+    A, B, Abar: (S, q) window heights, known mask, bounds (+inf = none); C: (S, n, q) library
+    patches; W: (q,) weights. Returns the chosen heights (S,) and sample indices (S,).
+    """
+    B = B.astype(np.float64)
+    m = B.sum(1)                                                        # (S,)
+    Az = np.where(B > 0, A, 0.0)
+    WB = W[None, :] * B
+    # s_k = sum W B (C - A + b)^2, expanded so that C is only read by three reductions
+    sums = np.matmul(C, np.stack([B, WB, WB * Az], -1))                # (S, n, 3)
+    sum_bc, sum_wbc, sum_wbca = sums[..., 0], sums[..., 1], sums[..., 2]
+    b = ((Az.sum(1))[:, None] - sum_bc) / m[:, None]                    # (S, n)
+    sum_wbcc = np.einsum('snq,snq,sq->sn', C, C, WB)
+    sum_wba = (WB * Az).sum(1)[:, None]
+    sum_wbaa = (WB * Az * Az).sum(1)[:, None]
+    s = (sum_wbcc - 2.0 * sum_wbca + sum_wbaa + 2.0 * b * (sum_wbc - sum_wba)
+         + b * b * WB.sum(1)[:, None])
+    centre = C.shape[2] // 2
+    h = C[:, :, centre] + b
+    # feasibility (v_k = 0) needs only the largest excess of the patch over the bound
+    ok = np.ones(b.shape, bool)
+    bounded = np.isfinite(Abar).any(1)
+    if bounded.all():
+        ok = (C - Abar[:, None, :]).max(2) + b <= 0.0
+    elif bounded.any():
+        excess = (C[bounded] - Abar[bounded][:, None, :]).max(2)       # (Sb, n)
+        ok[bounded] = excess + b[bounded] <= 0.0
+    any_ok = ok.any(1)
+    k = np.argmin(np.where(ok, s, np.inf), 1)
+    if not any_ok.all():
+        bad = ~any_ok
+        over = np.maximum(C[bad] + b[bad][:, :, None] - Abar[bad][:, None, :], 0.0)
+        k[bad] = np.argmin(np.einsum('snq,snq->sn', over, over), 1)
+    rows = np.arange(len(k))
+    return h[rows, k], k
+
+
+def fill_terrain(heights: np.ndarray, upper_bound: Optional[np.ndarray],
+                 library: Sequence[np.ndarray], config: FillConfig = FillConfig(),
+                 constrained: bool = True) -> FillResult:
+    """Fill every missing cell by Fill-Terrain (paper 000, Fig. 6), vectorised per round.
+
+    Args:
+        heights: (nx, ny) heights [m], NaN = missing; at least one cell known.
+        upper_bound: (nx, ny) line-of-sight bounds [m], NaN/None = no bound.
+        library: fully known height maps at the same resolution as ``heights``, or a
+            :class:`PatchLibrary` built from them (reuse it across calls: building is ~0.1 s).
+        config: window, samples, weighting, seed, batch size.
+        constrained: False ignores the bounds (texture synthesis without constraints).
+
+    Returns:
+        :class:`FillResult` (heights float64, filled mask, rounds, chosen library positions).
+
+    Raises:
+        ValueError: bad heights/bounds/library (see :func:`check_heights`, :func:`check_bounds`,
+            :class:`PatchLibrary`).
+    """
+    H = check_heights(heights)
+    ub = check_bounds(H, upper_bound)
+    if not constrained:
+        ub = np.full(H.shape, np.inf)
+    w = int(config.window_cells)
+    lib = library if isinstance(library, PatchLibrary) else PatchLibrary(library, w)
+    if lib.w != w:
+        raise ValueError(f'the patch library was built for w = {lib.w}, the config asks {w}')
+    r = w // 2
+    nx, ny = H.shape
+    known = np.isfinite(H)
+    missing0 = ~known
+    rng = np.random.default_rng(config.seed)
+    rank = rng.permutation(nx * ny).reshape(nx, ny)
+    W = gaussian_weights(w, config.weight_sigma_cells).ravel()
+    # padded views: outside the grid = unknown, no bound
+    Hp = np.pad(np.where(known, H, 0.0), r)
+    Kp = np.pad(known, r)
+    Up = np.pad(ub, r, constant_values=np.inf)
+    nyp = ny + 2 * r
+    du, dv = np.meshgrid(np.arange(w), np.arange(w), indexing='ij')
+    offs = (du * nyp + dv).ravel()
+    Hpf, Kpf, Upf = Hp.ravel(), Kp.ravel(), Up.ravel()
+    choice = np.full(nx * ny, -1, np.int64)
+    rounds = 0
+    n = int(config.samples)
+    per_block = max(1, int(config.batch_cells))
+    while not known.all():
+        sel = select_round(known, rank, w)
+        rounds += 1
+        u = rng.random((len(sel), n))
+        si, sj = np.divmod(sel, ny)
+        corner = si * nyp + sj                      # window corner in padded coordinates
+        for a in range(0, len(sel), per_block):
+            blk = slice(a, a + per_block)
+            idx = corner[blk, None] + offs[None, :]
+            g = lib.positions(u[blk])
+            C = lib.patches(g)
+            hbest, k = _choose(Hpf[idx], Kpf[idx], Upf[idx], C, W)
+            cells = sel[blk]
+            ci, cj = si[blk], sj[blk]
+            Hpf[(ci + r) * nyp + cj + r] = hbest
+            Kpf[(ci + r) * nyp + cj + r] = True
+            choice[cells] = g[np.arange(len(k)), k]
+        known.ravel()[sel] = True
+    out = Hp[r:r + nx, r:r + ny].copy()
+    return FillResult(out, missing0, rounds, choice.reshape(nx, ny))
+
+
+# --------------------------------------------------------------------------------------------
+# baselines (same interface)
+# --------------------------------------------------------------------------------------------
+def _nearest_fill(h: np.ndarray) -> np.ndarray:
+    known = np.isfinite(h)
+    _, (ii, jj) = ndimage.distance_transform_edt(~known, return_indices=True)
+    return h[ii, jj]
+
+
+def fill_constraints_as_heights(heights: np.ndarray,
+                                upper_bound: Optional[np.ndarray]) -> FillResult:
+    """Missing cells take their line-of-sight bound as height (Table I row 3); cells with no
+    bound take the nearest bounded-or-observed value (Euclidean distance transform)."""
+    H = check_heights(heights)
+    ub = check_bounds(H, upper_bound)
+    missing = ~np.isfinite(H)
+    out = np.where(missing & np.isfinite(ub), ub, H)
+    return FillResult(_nearest_fill(out), missing)
+
+
+def fill_constant(heights: np.ndarray, value: Optional[float] = None) -> FillResult:
+    """Missing cells take one constant [m]: ``value`` (the benchmark passes the optimum, the
+    mean of the true missing heights) or, by default, the mean observed height."""
+    H = check_heights(heights)
+    missing = ~np.isfinite(H)
+    c = float(np.nanmean(H)) if value is None else float(value)
+    return FillResult(np.where(missing, c, H), missing)
+
+
+def fill_inpaint(heights: np.ndarray, radius_cells: float = 3.0,
+                 flags: str = 'ns') -> FillResult:
+    """OpenCV inpainting of the missing heights without 8-bit quantisation.
+
+    ``'ns'`` (Navier-Stokes) runs on float32 heights directly (cv2.inpaint accepts CV_32FC1),
+    shifted by their mean so float32 keeps ~1e-8 m. ``'telea'`` runs on 16-bit heights scaled
+    to the observed range (step = range / 65535, 1.5 um for a 10 cm range): OpenCV 5.0's Telea
+    on CV_32F adds errors of about +-1 (in the image's units, whatever the scale), so its float
+    path cannot be used (test_fill checks both paths against a flat surround).
+    """
+    import cv2
+    H = check_heights(heights)
+    missing = ~np.isfinite(H)
+    mask = missing.astype(np.uint8)
+    if flags == 'telea':
+        lo, hi = float(np.nanmin(H)), float(np.nanmax(H))
+        scale = 65535.0 / (hi - lo) if hi > lo else 1.0
+        src = np.where(missing, 0.0, np.rint((H - lo) * scale)).astype(np.uint16)
+        out = cv2.inpaint(src, mask, float(radius_cells), cv2.INPAINT_TELEA)
+        res = out.astype(np.float64) / scale + lo
+    elif flags == 'ns':
+        off = float(np.nanmean(H))
+        src = np.where(missing, 0.0, H - off).astype(np.float32)
+        out = cv2.inpaint(src, mask, float(radius_cells), cv2.INPAINT_NS)
+        res = out.astype(np.float64) + off
+    else:
+        raise ValueError(f'unknown inpaint method {flags!r}; use telea or ns')
+    return FillResult(np.where(missing, res, H), missing)
+
+
+def fill_shao_rows(heights: np.ndarray, axis: int = 1) -> FillResult:
+    """Shao's row-neighbour fill (paper 002, sec. II-C): an empty cell takes the value of the
+    nearest known cell in the same row (``axis`` = the direction a row runs; ties go to the
+    lower index). Rows with no known cell at all, which the paper does not cover, take the
+    nearest known cell in 2-D."""
+    H = check_heights(heights)
+    missing = ~np.isfinite(H)
+    h = H if axis == 1 else H.T
+    known = np.isfinite(h)
+    n = h.shape[1]
+    idx = np.arange(n)[None, :].repeat(h.shape[0], 0)
+    prev = np.maximum.accumulate(np.where(known, idx, -1), axis=1)
+    nxt = np.minimum.accumulate(np.where(known, idx, n)[:, ::-1], axis=1)[:, ::-1]
+    dprev = np.where(prev >= 0, idx - prev, np.iinfo(np.int64).max)
+    dnext = np.where(nxt < n, nxt - idx, np.iinfo(np.int64).max)
+    src = np.where(dprev <= dnext, prev, nxt)
+    rows = np.arange(h.shape[0])[:, None]
+    has = (prev >= 0) | (nxt < n)
+    out = np.where(has, h[rows, np.clip(src, 0, n - 1)], np.nan)
+    out = out if axis == 1 else out.T
+    if np.isnan(out).any():
+        out = _nearest_fill(out)
+    return FillResult(out, missing)
+
+
+def fill(heights: np.ndarray, upper_bound: Optional[np.ndarray] = None,
+         library: Optional[Sequence[np.ndarray]] = None,
+         config: FillConfig = FillConfig(), constant: Optional[float] = None) -> FillResult:
+    """Dispatch to ``config.method``; every method takes the same inputs.
+
+    ``'none'`` leaves the map as it is (the "ignore missing heights" baseline: the cost
+    function then ignores the missing cells). ``constant`` is the value for ``'constant'``.
+    """
+    method = config.method
+    if method == 'fill_terrain':
+        return fill_terrain(heights, upper_bound, library, config, True)
+    if method == 'texture_synthesis':
+        return fill_terrain(heights, upper_bound, library, config, False)
+    if method == 'constraints_as_heights':
+        return fill_constraints_as_heights(heights, upper_bound)
+    if method == 'constant':
+        return fill_constant(heights, constant)
+    if method == 'inpaint':
+        return fill_inpaint(heights, config.inpaint_radius_cells, config.inpaint_flags)
+    if method == 'shao_rows':
+        return fill_shao_rows(heights, config.shao_row_axis)
+    if method == 'none':
+        H = check_heights(heights)
+        check_bounds(H, upper_bound)
+        return FillResult(H, np.zeros(H.shape, bool))
+    raise ValueError(f'unknown fill method {method!r}; use one of {FILL_METHODS}')
