@@ -10,7 +10,11 @@ Pipeline (paper 002, Shao, Yang, Wang, section II-A/B; paper 000, Kolter et al.,
    with OpenCV's ``StereoBM`` (:class:`StereoMatcher`), which *is* winner-take-all SAD over a
    square ``m x m`` window on pre-filtered images. Its own validity filters (texture threshold,
    uniqueness ratio, speckle filter) default to off, so that the paper's post-processing is what
-   removes mismatches; each can be switched back on from the config.
+   removes mismatches; each can be switched back on from the config. Two matching details are
+   ours: the images are padded on the left so that the first ``num_disparities`` columns, which
+   StereoBM never matches, are matched too (``pad_left``), and StereoBM's left-right check
+   (``lr_check_px``, nearly free inside StereoBM) refuses the pixels whose true match is not in
+   the right image (that band, and occlusions), where SAD otherwise returns confident garbage.
 3. **Row outlier removal** (section II-B-1, :func:`remove_row_outliers`): for every row, count
    how often each disparity value occurs; the pixels whose value occurs fewer than
    ``outlier_min_count`` times in their row are mismatches and are blanked (NaN). Disparities
@@ -83,6 +87,8 @@ class StereoConfig:
     num_disparities: int = param(64, 'disparity search range [px]; a multiple of 16', 16, 512)
     min_disparity: int = param(0, 'smallest disparity searched [px]', -128, 256)
     block_size_px: int = param(15, 'SAD window size m [px], odd', 5, 51)
+    pad_left: bool = param(True, 'pad the images on the left by the search range so that '
+                           'StereoBM also matches the first num_disparities columns')
     normalisation: str = param('meanstd', 'image normalisation before matching',
                                choices=NORMALISATIONS)
     prefilter: str = param('xsobel', 'StereoBM pre-filter', choices=PREFILTERS)
@@ -92,9 +98,11 @@ class StereoConfig:
     speckle_window_px: int = param(0, 'StereoBM speckle filter region size [px], 0 = off',
                                    0, 10000)
     speckle_range_px: int = param(2, 'StereoBM speckle filter disparity range [px]', 0, 64)
+    lr_check_px: int = param(1, 'StereoBM left-right consistency tolerance [px], -1 = off',
+                             -1, 64)
     outlier_removal: bool = param(True, 'row-histogram outlier removal (Shao II-B-1)')
     outlier_min_count: int = param(
-        12, 'a disparity value (rounded to 1 px) occurring fewer times than this in its row '
+        4, 'a disparity value (rounded to 1 px) occurring fewer times than this in its row '
         'marks its pixels as mismatches [px]', 1, 10000)
     area_filling: bool = param(True, 'eight-relation row area filling (Shao II-B-2)')
     fill_passes: int = param(1, 'repetitions of the area-filling step (paper: 1)', 1, 64)
@@ -225,15 +233,40 @@ class StereoMatcher:
         bm.setUniquenessRatio(config.uniqueness_ratio)
         bm.setSpeckleWindowSize(config.speckle_window_px)
         bm.setSpeckleRange(config.speckle_range_px * 16)
+        bm.setDisp12MaxDiff(config.lr_check_px)
         self._bm = bm
+        self.pad_px = config.num_disparities + max(config.min_disparity, 0) \
+            if config.pad_left else 0
 
     def match_fixed(self, left: np.ndarray, right: np.ndarray) -> np.ndarray:
-        """StereoBM's raw int16 output (disparity x 16; ``(min_disparity - 1) * 16`` = none)."""
-        return self._bm.compute(left, right)
+        """StereoBM's int16 output (disparity x 16; ``(min_disparity - 1) * 16`` = none).
+
+        StereoBM leaves the first ``min_disparity + num_disparities`` columns unmatched. With
+        ``pad_left`` both images get that many constant columns on the left, so a pixel in
+        that band is matched over the disparities whose right-image column exists (the
+        padding's flat cost never beats a textured true match); the padding is cropped again.
+        """
+        p = self.pad_px
+        if p == 0:
+            return self._bm.compute(left, right)
+        fill = float(np.mean(left[:, :8]))
+        lp = cv2.copyMakeBorder(left, 0, 0, p, 0, cv2.BORDER_CONSTANT, value=fill)
+        rp = cv2.copyMakeBorder(right, 0, 0, p, 0, cv2.BORDER_CONSTANT, value=fill)
+        return self._bm.compute(lp, rp)[:, p:]
 
     def match(self, left: np.ndarray, right: np.ndarray) -> np.ndarray:
-        """Disparity ``(H, W)`` float32 [px] of two grey uint8 images, NaN where none."""
-        return fixed_to_float(self.match_fixed(left, right), self.config.min_disparity)
+        """Disparity ``(H, W)`` float32 [px] of two grey uint8 images, NaN where none or where
+        the match would lie left of the right image (``d > u``: geometrically impossible)."""
+        d = fixed_to_float(self.match_fixed(left, right), self.config.min_disparity)
+        if self.pad_px:
+            d[d > self._columns(d.shape[1])] = np.nan
+        return d
+
+    def _columns(self, width: int) -> np.ndarray:
+        cols = getattr(self, '_cols', None)
+        if cols is None or cols.shape[1] != width:
+            cols = self._cols = np.arange(width, dtype=np.float32)[None, :]
+        return cols
 
 
 def fixed_to_float(disp16: np.ndarray, min_disparity: int = 0) -> np.ndarray:
@@ -260,26 +293,26 @@ def remove_row_outliers(disparity: np.ndarray, min_count: int,
     d = np.asarray(disparity, dtype=np.float32)
     if d.ndim != 2:
         raise ValueError(f'disparity must be (H, W), got shape {d.shape}')
-    out = d.copy()
-    valid = np.isfinite(d)
-    if not valid.any():
-        return out
-    h, w = d.shape
+    h, _ = d.shape
     if min_disparity is None or num_disparities is None:
+        if not np.isfinite(d).any():
+            return d.copy()
         lo = int(np.floor(np.nanmin(d)))
-        span = int(np.ceil(np.nanmax(d))) - lo + 1
+        span = int(np.floor(np.nanmax(d) + 0.5)) - lo + 1
     else:
         lo, span = int(min_disparity), int(num_disparities) + 1
-    # Bin 0 of each row collects the blanks; bins 1..span the rounded disparity values.
+    # Bin 0 of each row collects the blanks, bins 1..span the values rounded half up:
+    # bin = floor(d + 0.5) - lo + 1, computed as a truncating cast of a positive float.
     nb = span + 1
-    idx = np.zeros((h, w), dtype=np.int64)
-    vals = np.rint(d[valid]).astype(np.int64) - lo + 1
-    np.clip(vals, 1, span, out=vals)
-    idx[valid] = vals
-    idx += (np.arange(h, dtype=np.int64) * nb)[:, None]
-    counts = np.bincount(idx.ravel(), minlength=h * nb)
-    rare = counts[idx] < min_count
-    out[rare & valid] = np.nan
+    b = d + np.float32(1.5 - lo)
+    np.nan_to_num(b, copy=False, nan=0.0)
+    np.clip(b, 0.0, span + 0.5, out=b)
+    key = b.astype(np.int32)
+    key += (np.arange(h, dtype=np.int32) * nb)[:, None]
+    rare = np.bincount(key.ravel(), minlength=h * nb) < min_count
+    rare[::nb] = False
+    out = d.copy()
+    out[rare[key]] = np.nan
     return out
 
 
@@ -339,7 +372,8 @@ def disparity_to_points(disparity: np.ndarray, stereo: StereoCamera,
         rays = cam.rays().astype(np.float32)
     with np.errstate(divide='ignore', invalid='ignore'):
         z = np.float32(cam.fx * stereo.baseline_m) / d
-    z[~(d > 0) | ~(z <= max_depth_m)] = np.nan
+        # d <= 0 gives z <= 0 or inf; NaN fails both tests.
+        z[~((z > 0) & (z <= max_depth_m))] = np.nan
     return rays * z[..., None]
 
 

@@ -1,0 +1,304 @@
+"""stereo_node: rectified stereo pair -> disparity, organized cloud, coarse cloud, ground plane.
+
+Subscriptions (sensor-data QoS unless noted):
+    /stereo/left/image_rect, /stereo/right/image_rect  sensor_msgs/Image (mono8, rgb8, bgr8)
+    /stereo/left/camera_info, /stereo/right/camera_info  sensor_msgs/CameraInfo
+    /capture_request  std_msgs/Header (reliable; only used when ``capture_on_request``)
+Publications:
+    /stereo/disparity      stereo_msgs/DisparityImage (sensor data)
+    /stereo/points         sensor_msgs/PointCloud2, organized, left camera frame (sensor data)
+    /stereo/points_coarse  sensor_msgs/PointCloud2, organized coarse subsample (sensor data)
+    /stereo/ground_plane   terrain_msgs/GroundPlane (reliable)
+    ~/diagnostics          diagnostic_msgs/DiagnosticArray: counters of dropped/refused input
+
+Left and right images are paired by exact header stamp in a small bounded synchroniser
+(message_filters is not available). Camera infos are the latest received per side. A complete
+pair waits in a one-slot buffer; a newer pair replaces it (counted as ``stale_pair``). Without
+capture requests a timer processes the slot at most ``max_rate_hz``; with them, only the first
+pair stamped at or after a request is processed (paper 000: pictures when the body is stable).
+
+Every refused input is counted under its reason key and logged once (then every 100th time);
+nothing is published for it.
+"""
+
+from __future__ import annotations
+
+from collections import OrderedDict
+from dataclasses import dataclass
+from typing import Dict, Optional, Tuple
+
+import numpy as np
+from diagnostic_msgs.msg import DiagnosticArray  # noqa: F401  (type published by Counters)
+from rclpy.node import Node
+from sensor_msgs.msg import CameraInfo, Image, PointCloud2
+from std_msgs.msg import Header
+from stereo_msgs.msg import DisparityImage
+from terrain_msgs.msg import GroundPlane as GroundPlaneMsg
+
+from terrain_perception.camera import StereoCamera
+from terrain_perception.config import param
+from terrain_perception.ground_plane import GroundPlaneConfig, fit_ground_plane
+from terrain_perception.stereo import StereoConfig, StereoInputError, StereoPipeline
+from terrain_ros.conversions import (camera_info_to_stereo, disparity_to_msg, image_to_numpy,
+                                     make_header, stamp_to_sec, xyz_to_cloud)
+from terrain_ros.node import Counters, run_node
+from terrain_ros.params import declare_config
+from terrain_ros.qos import RELIABLE_QOS, SENSOR_QOS
+
+ACCEPTED_ENCODINGS = {'mono8': 'rgb', 'rgb8': 'rgb', 'bgr8': 'bgr'}
+
+Stamp = Tuple[int, int]
+
+
+@dataclass(frozen=True)
+class StereoNodeConfig:
+    """Node-level parameters (the algorithms' own are StereoConfig and GroundPlaneConfig)."""
+
+    capture_on_request: bool = param(False, 'process only the first pair at or after each '
+                                     '/capture_request stamp')
+    max_rate_hz: float = param(15.0, 'upper bound on processed pairs per second [Hz]',
+                               0.1, 1000.0)
+    sync_queue_size: int = param(10, 'unpaired images kept per side while waiting for the '
+                                 'other side', 1, 1000)
+    estimate_ground_plane: bool = param(True, 'fit and publish the RANSAC ground plane')
+    diagnostics_period_s: float = param(1.0, 'period of the counters message [s]', 0.05, 3600.0)
+    always_process: bool = param(False, 'process pairs even when no one subscribes to an '
+                                 'output')
+
+
+def _stamp_key(header: Header) -> Stamp:
+    return (int(header.stamp.sec), int(header.stamp.nanosec))
+
+
+class StereoSync:
+    """Exact-stamp pairing of left and right images with bounded queues.
+
+    ``add(side, msg)`` returns the completed ``(left, right)`` pair or None, and the list of
+    stamps that can no longer be paired (older than the pair just completed, or pushed out of a
+    full queue), for the caller to count.
+    """
+
+    def __init__(self, queue_size: int) -> None:
+        self.queue_size = int(queue_size)
+        self._q: Dict[str, 'OrderedDict[Stamp, Image]'] = {'left': OrderedDict(),
+                                                            'right': OrderedDict()}
+
+    def add(self, side: str, msg: Image):
+        other = 'right' if side == 'left' else 'left'
+        key = _stamp_key(msg.header)
+        dropped = []
+        mine, theirs = self._q[side], self._q[other]
+        if key in theirs:
+            partner = theirs.pop(key)
+            # Anything older than a completed pair on either side will never be paired.
+            for q in (mine, theirs):
+                for k in [k for k in q if k < key]:
+                    del q[k]
+                    dropped.append(k)
+            pair = (msg, partner) if side == 'left' else (partner, msg)
+            return pair, dropped
+        if key in mine:
+            dropped.append(key)              # duplicate stamp: keep the newer image
+        mine[key] = msg
+        while len(mine) > self.queue_size:
+            k, _ = mine.popitem(last=False)
+            dropped.append(k)
+        return None, dropped
+
+
+class StereoNode(Node):
+    """Stereo pair -> disparity, clouds and ground plane; see the module docstring."""
+
+    def __init__(self, **kwargs) -> None:
+        super().__init__('stereo_node', **kwargs)
+        self.node_cfg: StereoNodeConfig = declare_config(self, StereoNodeConfig,
+                                                         on_change=self._on_node_cfg)
+        self.stereo_cfg: StereoConfig = declare_config(self, StereoConfig,
+                                                       on_change=self._on_stereo_cfg)
+        self.plane_cfg: GroundPlaneConfig = declare_config(
+            self, GroundPlaneConfig, prefix='ground_plane', on_change=self._on_plane_cfg)
+
+        self.counters = Counters(self)
+        self._sync = StereoSync(self.node_cfg.sync_queue_size)
+        self._info: Dict[str, Optional[CameraInfo]] = {'left': None, 'right': None}
+        self._stereo: Optional[StereoCamera] = None
+        self._stereo_key = None
+        self._pipeline: Optional[StereoPipeline] = None
+        self._pending: Optional[Tuple[Image, Image]] = None
+        self._request_stamp: Optional[float] = None
+        self._last_processed_stamp: Optional[float] = None
+        self.frames_processed = 0
+
+        self.pub_disparity = self.create_publisher(DisparityImage, '/stereo/disparity', SENSOR_QOS)
+        self.pub_points = self.create_publisher(PointCloud2, '/stereo/points', SENSOR_QOS)
+        self.pub_coarse = self.create_publisher(PointCloud2, '/stereo/points_coarse', SENSOR_QOS)
+        self.pub_plane = self.create_publisher(GroundPlaneMsg, '/stereo/ground_plane',
+                                               RELIABLE_QOS)
+
+        for side in ('left', 'right'):
+            self.create_subscription(Image, f'/stereo/{side}/image_rect',
+                                     lambda m, s=side: self._on_image(s, m), SENSOR_QOS)
+            self.create_subscription(CameraInfo, f'/stereo/{side}/camera_info',
+                                     lambda m, s=side: self._on_info(s, m), SENSOR_QOS)
+        self.create_subscription(Header, '/capture_request', self._on_capture_request,
+                                 RELIABLE_QOS)
+        self._timer = self.create_timer(1.0 / self.node_cfg.max_rate_hz, self._on_timer)
+        self.create_timer(self.node_cfg.diagnostics_period_s, self.counters.publish)
+
+    # ------------------------------------------------------------------ parameters
+
+    def _on_node_cfg(self, cfg: StereoNodeConfig) -> None:
+        old, self.node_cfg = self.node_cfg, cfg
+        self._sync.queue_size = cfg.sync_queue_size
+        if cfg.max_rate_hz != old.max_rate_hz:
+            self.destroy_timer(self._timer)
+            self._timer = self.create_timer(1.0 / cfg.max_rate_hz, self._on_timer)
+
+    def _on_stereo_cfg(self, cfg: StereoConfig) -> None:
+        self.stereo_cfg = cfg
+        self._pipeline = None                    # rebuilt with the new config on the next pair
+
+    def _on_plane_cfg(self, cfg: GroundPlaneConfig) -> None:
+        self.plane_cfg = cfg
+
+    # ------------------------------------------------------------------ inputs
+
+    def _on_info(self, side: str, msg: CameraInfo) -> None:
+        self._info[side] = msg
+
+    def _on_capture_request(self, msg: Header) -> None:
+        self._request_stamp = stamp_to_sec(msg.stamp)
+        if self._pending is not None and self.node_cfg.capture_on_request:
+            self._try_pending()
+
+    def _on_image(self, side: str, msg: Image) -> None:
+        pair, dropped = self._sync.add(side, msg)
+        for k in dropped:
+            self.counters.bump('unpaired_stamp', f'no {side}/other image with stamp '
+                                                 f'{k[0]}.{k[1]:09d} s arrived; image dropped')
+        if pair is None:
+            return
+        if self._pending is not None:
+            self.counters.bump('stale_pair', 'a newer pair arrived before the previous one '
+                                             'was processed; the older pair was dropped')
+        self._pending = pair
+        if self.node_cfg.capture_on_request:
+            self._try_pending()
+
+    def _on_timer(self) -> None:
+        if not self.node_cfg.capture_on_request and self._pending is not None:
+            pair, self._pending = self._pending, None
+            self.process_pair(*pair)
+
+    def _try_pending(self) -> None:
+        if self._request_stamp is None or self._pending is None:
+            return
+        t = stamp_to_sec(self._pending[0].header.stamp)
+        if t >= self._request_stamp:
+            pair, self._pending = self._pending, None
+            self._request_stamp = None
+            self.process_pair(*pair)
+
+    # ------------------------------------------------------------------ processing
+
+    def _has_listeners(self) -> bool:
+        return self.node_cfg.always_process or any(
+            p.get_subscription_count() > 0
+            for p in (self.pub_disparity, self.pub_points, self.pub_coarse, self.pub_plane))
+
+    def _camera(self, left: Image) -> Optional[StereoCamera]:
+        li, ri = self._info['left'], self._info['right']
+        if li is None or ri is None:
+            missing = ' and '.join(s for s in ('left', 'right') if self._info[s] is None)
+            self.counters.bump('missing_camera_info', f'no {missing} camera_info received yet; '
+                                                      'pair dropped')
+            return None
+        key = (tuple(li.p), tuple(ri.p), li.width, li.height, ri.width, ri.height)
+        if key != self._stereo_key:
+            try:
+                stereo = camera_info_to_stereo(li, ri)
+            except ValueError as exc:
+                self.counters.bump('bad_camera_info', f'{exc}; pair dropped')
+                return None
+            self._stereo, self._stereo_key, self._pipeline = stereo, key, None
+        if (left.width, left.height) != (self._stereo.left.width, self._stereo.left.height):
+            self.counters.bump('size_mismatch', f'image is {left.width}x{left.height}, '
+                                                f'camera_info is {self._stereo.left.width}x'
+                                                f'{self._stereo.left.height}; pair dropped')
+            return None
+        return self._stereo
+
+    def _images(self, left: Image, right: Image):
+        for side, m in (('left', left), ('right', right)):
+            if m.encoding not in ACCEPTED_ENCODINGS:
+                self.counters.bump('bad_encoding', f'{side} image encoding {m.encoding!r} is '
+                                                   f'not one of {sorted(ACCEPTED_ENCODINGS)}; '
+                                                   'pair dropped')
+                return None
+        if left.encoding != right.encoding:
+            self.counters.bump('encoding_mismatch', f'left is {left.encoding}, right is '
+                                                    f'{right.encoding}; pair dropped')
+            return None
+        if (left.width, left.height) != (right.width, right.height):
+            self.counters.bump('size_mismatch', f'left is {left.width}x{left.height}, right is '
+                                                f'{right.width}x{right.height}; pair dropped')
+            return None
+        try:
+            return image_to_numpy(left), image_to_numpy(right)
+        except ValueError as exc:
+            self.counters.bump('bad_image', f'{exc}; pair dropped')
+            return None
+
+    def process_pair(self, left: Image, right: Image) -> bool:
+        """Process one stamped pair and publish; False (counted) when it was refused."""
+        if not self._has_listeners():
+            return False
+        imgs = self._images(left, right)
+        if imgs is None:
+            return False
+        stereo = self._camera(left)
+        if stereo is None:
+            return False
+        if self._pipeline is None:
+            self._pipeline = StereoPipeline(self.stereo_cfg, stereo)
+        try:
+            frame = self._pipeline.process(*imgs, ACCEPTED_ENCODINGS[left.encoding])
+        except StereoInputError as exc:
+            self.counters.bump(exc.key, f'{exc}; pair dropped')
+            return False
+        stamp, frame_id = left.header.stamp, left.header.frame_id
+        c = self.stereo_cfg
+        self.pub_disparity.publish(disparity_to_msg(
+            frame.disparity, stereo, frame_id, stamp, float(c.min_disparity),
+            float(c.min_disparity + c.num_disparities - 1)))
+        self.pub_points.publish(xyz_to_cloud(frame.points, frame_id, stamp))
+        self.pub_coarse.publish(xyz_to_cloud(frame.coarse, frame_id, stamp))
+        if self.node_cfg.estimate_ground_plane:
+            self._publish_plane(frame.points, frame_id, stamp)
+        self.frames_processed += 1
+        self._last_processed_stamp = stamp_to_sec(stamp)
+        return True
+
+    def _publish_plane(self, points: np.ndarray, frame_id: str, stamp) -> None:
+        try:
+            plane = fit_ground_plane(points, self.plane_cfg)
+        except ValueError as exc:
+            self.counters.bump('no_ground_plane', str(exc))
+            return
+        msg = GroundPlaneMsg()
+        msg.header = make_header(frame_id, stamp)
+        msg.normal.x, msg.normal.y, msg.normal.z = (float(v) for v in plane.normal)
+        msg.d = float(plane.d)
+        msg.pitch = float(plane.pitch_rad)
+        msg.height = float(plane.height_m)
+        msg.inlier_ratio = float(plane.inlier_ratio)
+        msg.inliers = int(plane.inliers)
+        self.pub_plane.publish(msg)
+
+
+def main(args=None) -> int:
+    return run_node(StereoNode, args=args)
+
+
+if __name__ == '__main__':
+    raise SystemExit(main())

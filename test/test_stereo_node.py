@@ -1,0 +1,239 @@
+"""stereo_node in process: a published rendered pair becomes a cloud on the true surface; every
+bad input is counted, logged and never published."""
+
+import numpy as np
+import pytest
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from sensor_msgs.msg import CameraInfo, Image, PointCloud2
+from std_msgs.msg import Header
+from stereo_msgs.msg import DisparityImage
+from terrain_msgs.msg import GroundPlane
+
+from conftest import spin_until
+from stereo_node.node import StereoNode, StereoSync
+from terrain_perception.bench.stereo import render_pair_raycast, synthetic_course
+from terrain_perception.camera import PinholeCamera, StereoCamera
+from terrain_perception.ground_plane import camera_pitch_from_pose
+from terrain_perception.raycast import interpolate_height
+from terrain_perception.transforms import make_T, rot_y, transform_points
+from terrain_ros.conversions import (cloud_to_xyz, msg_to_disparity, numpy_to_image,
+                                     sec_to_stamp, stereo_to_camera_info)
+from terrain_ros.qos import RELIABLE_QOS, SENSOR_QOS
+
+FRAME = 'camera_optical'
+STEREO = StereoCamera(PinholeCamera.from_fov(320, 240, 45.0), 0.08)
+# Optical frame 0.5 m above the ground, pitched 35 deg down (columns: x right, y down, z fwd).
+_R_BODY_OPTICAL = np.array([[0, 0, 1], [-1, 0, 0], [0, -1, 0]], dtype=float)
+T_WORLD_CAM = make_T(rot_y(np.radians(35.0)) @ _R_BODY_OPTICAL, [0.0, 0.0, 0.5])
+
+
+@pytest.fixture(scope='module')
+def scene():
+    grid = synthetic_course('boxes', seed=3, size_xy=(4.0, 3.0))
+    left, right, depth = render_pair_raycast(grid, STEREO, T_WORLD_CAM, seed=3)
+    return grid, left, right, depth
+
+
+def _edge_distance(grid, xy):
+    """Distance [m] (in cells, rounded down) from x-y to the nearest height step > 1 cm."""
+    import cv2
+    h = grid['elevation']
+    step = np.zeros(h.shape, bool)
+    step[1:, :] |= np.abs(np.diff(h, axis=0)) > 0.01
+    step[:, 1:] |= np.abs(np.diff(h, axis=1)) > 0.01
+    dist = cv2.distanceTransform((~step).astype(np.uint8), cv2.DIST_L2, 3) * grid.resolution_m
+    ij = np.clip(grid.world_to_index(xy), 0, np.array(h.shape) - 1)
+    return dist[ij[:, 0], ij[:, 1]]
+
+
+class Harness:
+    """Publishers of the node's inputs and recorders of its outputs."""
+
+    def __init__(self, ctx, executor, **params):
+        # A 9 px window for the 320x240 test camera (15 px is the default at 640x480).
+        overrides = [Parameter('num_disparities', value=64), Parameter('block_size_px', value=9)]
+        overrides += [Parameter(k, value=v) for k, v in params.items()]
+        self.node = StereoNode(context=ctx, parameter_overrides=overrides)
+        self.io = Node('stereo_test_io', context=ctx)
+        self.ex = executor
+        executor.add_node(self.node)
+        executor.add_node(self.io)
+        self.pub = {s: self.io.create_publisher(Image, f'/stereo/{s}/image_rect', SENSOR_QOS)
+                    for s in ('left', 'right')}
+        self.info = {s: self.io.create_publisher(CameraInfo, f'/stereo/{s}/camera_info',
+                                                 SENSOR_QOS) for s in ('left', 'right')}
+        self.req = self.io.create_publisher(Header, '/capture_request', RELIABLE_QOS)
+        self.got = {'points': [], 'coarse': [], 'disparity': [], 'plane': []}
+        for key, typ, topic, qos in (('points', PointCloud2, '/stereo/points', SENSOR_QOS),
+                                     ('coarse', PointCloud2, '/stereo/points_coarse',
+                                      SENSOR_QOS),
+                                     ('disparity', DisparityImage, '/stereo/disparity',
+                                      SENSOR_QOS),
+                                     ('plane', GroundPlane, '/stereo/ground_plane',
+                                      RELIABLE_QOS)):
+            self.io.create_subscription(typ, topic, lambda m, k=key: self.got[k].append(m), qos)
+        assert spin_until(executor, lambda: all(
+            p.get_subscription_count() > 0 for p in (*self.pub.values(), *self.info.values())),
+            5.0)
+        assert spin_until(executor, lambda: self.node.pub_points.get_subscription_count() > 0,
+                          5.0)
+
+    def send_info(self, stereo=STEREO, t=1.0):
+        li, ri = stereo_to_camera_info(stereo, FRAME, t)
+        self.info['left'].publish(li)
+        self.info['right'].publish(ri)
+
+    def send_pair(self, left, right, t, enc='mono8', enc_right=None):
+        for side, img, e in (('left', left, enc), ('right', right, enc_right or enc)):
+            self.pub[side].publish(numpy_to_image(img, e, FRAME, t))
+
+    def spin(self, pred, timeout=10.0):
+        return spin_until(self.ex, pred, timeout)
+
+    def counter(self, key):
+        return self.node.counters[key]
+
+
+def test_published_pair_gives_a_cloud_on_the_true_surface(ros_context, executor, scene):
+    grid, left, right, depth = scene
+    h = Harness(ros_context, executor)
+    h.send_info()
+    assert h.spin(lambda: h.node._info['right'] is not None, 5.0)
+    h.send_pair(left, right, 12.5)
+    assert h.spin(lambda: h.got['points'] and h.got['plane'] and h.got['coarse']
+                  and h.got['disparity'])
+    cloud = h.got['points'][0]
+    assert cloud.header.frame_id == FRAME and cloud.header.stamp == sec_to_stamp(12.5)
+    pts = cloud_to_xyz(cloud)
+    assert pts.shape == (240, 320, 3)
+    valid = np.isfinite(pts).all(axis=2)
+    truth = np.isfinite(depth)
+    assert valid[truth].mean() > 0.85
+    world = transform_points(T_WORLD_CAM, pts[valid].astype(np.float64))
+    err = world[:, 2] - interpolate_height(grid, world[:, :2])
+    ok = np.isfinite(err)
+    assert ok.mean() > 0.8
+    assert np.median(np.abs(err[ok])) < 0.005
+    # Away from the boxes' edges (where a small x-y error jumps between top and floor) the
+    # points are on the surface.
+    smooth = ok & (_edge_distance(grid, world[:, :2]) > 0.03)
+    assert smooth.mean() > 0.8
+    assert np.mean(np.abs(err[smooth]) < 0.02) > 0.98
+    # Disparity message against the exact disparity of the depth buffer.
+    d = msg_to_disparity(h.got['disparity'][0])
+    gt = STEREO.depth_to_disparity(depth)
+    both = np.isfinite(d) & np.isfinite(gt)
+    assert np.mean(np.abs(d[both] - gt[both]) <= 1.0) > 0.95
+    assert cloud_to_xyz(h.got['coarse'][0]).shape == (30, 40, 3)
+    plane = h.got['plane'][0]
+    assert abs(plane.pitch - camera_pitch_from_pose(T_WORLD_CAM)) < np.radians(1.0)
+    assert abs(plane.height - 0.5) < 0.01
+    assert not h.node.counters.counts
+
+
+def test_capture_request_mode_processes_only_requested_pairs(ros_context, executor, scene):
+    _, left, right, _ = scene
+    h = Harness(ros_context, executor, capture_on_request=True)
+    h.send_info()
+    assert h.spin(lambda: h.node._info['right'] is not None, 5.0)
+    h.send_pair(left, right, 2.0)
+    assert h.spin(lambda: h.node._pending is not None, 5.0)
+    h.spin(lambda: False, 0.3)
+    assert not h.got['points']                    # no request yet
+    h.req.publish(Header(stamp=sec_to_stamp(3.0)))
+    h.spin(lambda: h.node._request_stamp is not None, 5.0)
+    h.spin(lambda: False, 0.3)
+    assert not h.got['points']                    # the waiting pair is older than the request
+    h.send_pair(left, right, 3.5)
+    assert h.spin(lambda: len(h.got['points']) == 1)
+    assert h.got['points'][0].header.stamp == sec_to_stamp(3.5)
+    h.send_pair(left, right, 4.0)                 # request consumed: not processed
+    h.spin(lambda: False, 0.5)
+    assert len(h.got['points']) == 1
+
+
+def _bad_cases(left, right):
+    black = np.zeros_like(left)
+    white = np.full_like(left, 255)
+    rgb = np.repeat(left[..., None], 3, axis=2)
+    return [
+        ('size_mismatch', dict(left=left, right=right[:, :300])),
+        ('encoding_mismatch', dict(left=left, right=rgb, enc_right='rgb8')),
+        ('bad_encoding', dict(left=left.astype(np.uint16) * 256, right=right.astype(np.uint16),
+                              enc='mono16')),
+        ('bad_encoding', dict(left=left.astype(np.float32), right=right.astype(np.float32),
+                              enc='32FC1')),
+        ('black_image', dict(left=black, right=right)),
+        ('saturated_image', dict(left=left, right=white)),
+    ]
+
+
+def test_every_bad_input_is_counted_and_nothing_is_published(ros_context, executor, scene):
+    _, left, right, _ = scene
+    h = Harness(ros_context, executor)
+    # No camera info yet.
+    h.send_pair(left, right, 1.0)
+    assert h.spin(lambda: h.counter('missing_camera_info') == 1)
+    # Zero baseline.
+    li, ri = stereo_to_camera_info(STEREO, FRAME, 1.0)
+    ri.p[3] = 0.0
+    h.info['left'].publish(li)
+    h.info['right'].publish(ri)
+    assert h.spin(lambda: h.node._info['right'] is not None)
+    h.send_pair(left, right, 1.5)
+    assert h.spin(lambda: h.counter('bad_camera_info') == 1)
+    h.send_info()
+    assert h.spin(lambda: h.node._info['right'] is not None
+                  and h.node._info['right'].p[3] != 0.0)
+    t = 2.0
+    expected = {}
+    for key, kw in _bad_cases(left, right):
+        expected[key] = expected.get(key, 0) + 1
+        h.send_pair(t=t, **kw)
+        t += 0.5
+        assert h.spin(lambda: h.counter(key) == expected[key]), key
+    # Unpaired stamps: a left image that never gets its right one is dropped once a later
+    # pair completes.
+    h.pub['left'].publish(numpy_to_image(left, 'mono8', FRAME, t))
+    h.pub['right'].publish(numpy_to_image(right, 'mono8', FRAME, t + 0.01))
+    h.spin(lambda: False, 0.3)
+    assert not h.got['points']
+    h.send_pair(left, right, t + 1.0)
+    assert h.spin(lambda: h.counter('unpaired_stamp') == 2 and h.got['points'])
+    # The node kept running and published only the one good pair.
+    assert len(h.got['points']) == 1
+    assert h.got['points'][0].header.stamp == sec_to_stamp(t + 1.0)
+    diag = dict(h.node.counters.counts)
+    assert diag == {'missing_camera_info': 1, 'bad_camera_info': 1, 'size_mismatch': 1,
+                    'encoding_mismatch': 1, 'bad_encoding': 2, 'black_image': 1,
+                    'saturated_image': 1, 'unpaired_stamp': 2}
+
+
+def _img(t):
+    return numpy_to_image(np.zeros((4, 4), np.uint8), 'mono8', FRAME, t)
+
+
+def test_sync_pairs_by_exact_stamp_and_bounds_its_queue():
+    s = StereoSync(queue_size=2)
+    assert s.add('left', _img(1.0)) == (None, [])
+    pair, dropped = s.add('right', _img(1.0))
+    assert pair is not None and dropped == []
+    assert pair[0].header.stamp == sec_to_stamp(1.0)
+    s.add('left', _img(2.0))
+    s.add('left', _img(3.0))
+    _, dropped = s.add('left', _img(4.0))           # queue of 2: the oldest goes
+    assert dropped == [(2, 0)]
+    pair, dropped = s.add('right', _img(4.0))
+    assert pair is not None and dropped == [(3, 0)]
+
+
+def test_rate_mode_keeps_only_the_newest_pair(ros_context, scene):
+    node = StereoNode(context=ros_context)
+    _, left, right, _ = scene
+    for t in (1.0, 1.1, 1.2):
+        node._on_image('left', numpy_to_image(left, 'mono8', FRAME, t))
+        node._on_image('right', numpy_to_image(right, 'mono8', FRAME, t))
+    assert node.counters['stale_pair'] == 2
+    assert node._pending[0].header.stamp == sec_to_stamp(1.2)
+    node.destroy_node()
