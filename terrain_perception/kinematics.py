@@ -150,3 +150,35 @@ def standing_joint_angles(model: RobotModel) -> np.ndarray:
     feet = np.array(model.nominal_feet)
     feet[:, 2] += model.foot_radius_m
     return inverse(model, feet)
+
+
+def leg_points(model: RobotModel, q: np.ndarray) -> np.ndarray:
+    """``(..., 4, 4, 3)`` hip-abduction origin, hip-flexion origin, knee and foot centre of each
+    leg in base_link [m]."""
+    q = _leg_arrays(model, q, 'joint angles')
+    l1, l2 = model.thigh_length_m, model.shank_length_m
+    q0, q1, q2 = q[..., 0], q[..., 1], q[..., 2]
+    yp = np.broadcast_to(LEG_SIDE * model.abduction_offset_m, q0.shape)
+    zero = np.zeros_like(q0)
+    planar = [(zero, zero), (-l1 * np.sin(q1), -l1 * np.cos(q1)),
+              (-l1 * np.sin(q1) - l2 * np.sin(q1 + q2), -l1 * np.cos(q1) - l2 * np.cos(q1 + q2))]
+    c0, s0 = np.cos(q0), np.sin(q0)
+    pts = [np.broadcast_to(model.hip_offsets, q.shape)]
+    for xp, zp in planar:
+        pts.append(np.stack([xp, c0 * yp - s0 * zp, s0 * yp + c0 * zp], axis=-1)
+                   + model.hip_offsets)
+    return np.stack(pts, axis=-2)
+
+
+def com_base(model: RobotModel, q: np.ndarray) -> np.ndarray:
+    """Whole-robot centre of mass ``(..., 3)`` in base_link [m] for joint angles ``(..., 4, 3)``.
+
+    Body mass at the base origin, hip links at their joint, thigh and shank masses at their
+    segment midpoints (as in the generated URDF).
+    """
+    pts = leg_points(model, q)
+    m_hip, m_thigh, m_shank = (float(m) for m in model.link_masses_kg)
+    legs = (m_hip * pts[..., 0, :] + m_thigh * 0.5 * (pts[..., 1, :] + pts[..., 2, :])
+            + m_shank * 0.5 * (pts[..., 2, :] + pts[..., 3, :])).sum(axis=-2)
+    total = model.body_mass_kg + 4.0 * (m_hip + m_thigh + m_shank)
+    return legs / total

@@ -73,6 +73,8 @@ class RobotModel:
         nominal_feet: ``(4, 3)`` foot contact points in base_link when standing [m].
         max_step_length_m: longest planned step, swing_height_m: nominal swing apex above the
             higher end of the step, body_move_per_period_m: body advance per gait period.
+        swing_duration_s, shift_duration_s: default crawl timing [s];
+            stability_margin_m: default COG margin inside the support triangle [m].
         body_mass_kg, body_size_m, body_inertia_diag: body link.
         link_masses_kg: ``(3,)`` hip, thigh, shank link masses.
         total_mass_kg: body plus legs.
@@ -104,6 +106,9 @@ class RobotModel:
     max_step_length_m: float
     swing_height_m: float
     body_move_per_period_m: float
+    swing_duration_s: float
+    shift_duration_s: float
+    stability_margin_m: float
     body_mass_kg: float
     body_size_m: np.ndarray
     body_inertia_diag: np.ndarray
@@ -249,6 +254,11 @@ def model_from_dict(data: Mapping, source_path: Path = Path()) -> RobotModel:
                                  'gait.swing_height_m'),
         body_move_per_period_m=_positive(_require(gait, 'body_move_per_period_m', 'gait.'),
                                          'gait.body_move_per_period_m'),
+        swing_duration_s=_positive(_require(gait, 'swing_duration_s', 'gait.'),
+                                   'gait.swing_duration_s'),
+        shift_duration_s=_positive(_require(gait, 'shift_duration_s', 'gait.'),
+                                   'gait.shift_duration_s'),
+        stability_margin_m=float(_require(gait, 'stability_margin_m', 'gait.')),
         body_mass_kg=_positive(_require(body, 'mass_kg', 'body.'), 'body.mass_kg'),
         body_size_m=_frozen(_require(body, 'size_m', 'body.'), (3,), 'body.size_m'),
         body_inertia_diag=_frozen(_require(body, 'inertia_diag_kgm2', 'body.'), (3,),

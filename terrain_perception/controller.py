@@ -1,0 +1,554 @@
+"""Walking controller core: footsteps -> statically stable body/foot motion -> joint targets.
+
+Paper 000 (Kolter et al., sec. IV): from the planned footsteps, plan COG and foot trajectories
+that keep static stability, then IK and PD joint control; dead reckoning along the *desired*
+trajectory is the ICP prior and is re-anchored by ICP; the controller tells perception when
+the body is stable enough for a picture. Paper 002 (Shao et al., sec. III): walk and trot
+executed discontinuously (the body moves only while all four feet are down), waypoints turned
+into joint space by IK and interpolated with cubic splines, COG kept in the support polygon.
+
+Execution unit = one footstep (walk) or one diagonal pair (trot):
+
+1. *shift*: all four feet down, the body moves so that the whole-robot COG is at least
+   ``stability_margin_m`` inside the triangle of the legs that stay down (the nearest such
+   point to the nominal body position over the next stance);
+2. *swing*: the body holds still; the foot lifts, traverses at a height that clears the
+   terrain under its path, and lands on the footstep.
+
+Each segment's Cartesian motion is sampled at ``knot_dt_s``, converted by IK and interpolated
+with a clamped ``scipy.interpolate.CubicSpline`` in joint space.
+
+Frames: footsteps, feet and the body pose live in ``odom`` (the dead-reckoning frame);
+``T_map_odom`` (from ICP) converts plans given in ``map``. Time is passed in [s]; the core
+never reads a clock.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable, NamedTuple, Optional
+
+import numpy as np
+from scipy.interpolate import CubicSpline
+
+from terrain_perception import gait as gaitlib
+from terrain_perception import kinematics
+from terrain_perception.config import param
+from terrain_perception.robot_model import LEG_NAMES, RobotModel
+from terrain_perception.transforms import invert, make_T, rot_z, transform_points
+
+
+@dataclass(frozen=True)
+class WalkingConfig:
+    """Walking controller parameters (0 = take the robot profile's value where noted)."""
+
+    swing_duration_s: float = param(0.0, 'Duration of one crawl swing [s] (0 = profile)',
+                                    0.0, 10.0)
+    shift_duration_s: float = param(0.0, 'Duration of one body shift [s] (0 = profile)',
+                                    0.0, 10.0)
+    trot_swing_fraction: float = param(0.7, 'Trot swing duration as a fraction of the crawl '
+                                       'swing [-]', 0.1, 1.0)
+    stability_margin_m: float = param(0.0, 'COG distance inside the support triangle before '
+                                      'a swing [m] (0 = profile)', 0.0, 0.5)
+    terrain_clearance_m: float = param(0.0, 'Swing apex above the highest terrain under the '
+                                       'swing path [m] (0 = half the profile swing height)',
+                                       0.0, 0.5)
+    knot_dt_s: float = param(0.02, 'Spacing of IK knots for the joint cubic splines [s]',
+                             0.002, 0.5)
+    plan_timeout_s: float = param(5.0, 'A plan older than this starts no new step [s]',
+                                  0.1, 3600.0)
+    max_step_factor: float = param(1.3, 'Reject steps longer than this times the profile\'s '
+                                   'max_step_length_m [-]', 1.0, 3.0)
+    touchdown_depth_m: float = param(0.002, 'Foot target this far below the foothold so the '
+                                     'foot loads firmly [m]', 0.0, 0.05)
+    still_settle_s: float = param(0.1, 'Body desired velocity zero this long before it counts '
+                                  'as still [s]', 0.0, 5.0)
+    still_joint_speed_rad_s: float = param(0.5, 'Stance joints slower than this count as still '
+                                           '[rad/s]', 0.0, 100.0)
+    capture_min_interval_s: float = param(0.5, 'Minimum time between capture requests [s] '
+                                          '(paper 000: pictures twice a second)', 0.0, 60.0)
+    recenter: bool = param(True, 'Shift the body back over the centre of its four feet when '
+                           'the plan is exhausted')
+
+
+class JointCommand(NamedTuple):
+    """Joint targets ``(12,)`` in ``RobotModel.joint_names`` order: angles [rad], rates [rad/s]."""
+
+    positions: np.ndarray
+    velocities: np.ndarray
+
+
+@dataclass
+class _Segment:
+    kind: str                     # 'shift' or 'swing'
+    t0: float
+    duration: float
+    spline: CubicSpline           # joint angles (12,) over [0, duration]
+    body_fn: Callable             # tau -> (x, y, z, yaw) (odom)
+    feet_end: np.ndarray          # (4, 3) contact points at the end (odom)
+    body_end: np.ndarray          # (x, y, z, yaw) at the end
+    legs: tuple = ()              # swinging legs
+    moves_body: bool = True
+    roll_end: Optional[np.ndarray] = None   # (4, 3) rolling displacement of the feet at the end
+
+    @property
+    def t_end(self) -> float:
+        return self.t0 + self.duration
+
+
+@dataclass
+class _Step:
+    legs: tuple
+    targets: np.ndarray           # (k, 3) contact points, odom
+    gait: str
+
+
+class WalkingController:
+    """Executes a footstep sequence with a discontinuous crawl (walk) or trot.
+
+    Typical use (one call per control tick)::
+
+        ctl = WalkingController(model, WalkingConfig())
+        ctl.set_footsteps(legs, xyz, 'walk', t_now)            # odom frame
+        cmd = ctl.update(t_now, q_measured, dq_measured)       # -> JointCommand
+        T_odom_base = ctl.odom_pose                             # dead reckoning
+        if ctl.capture_due(t_now): ...                          # ask for a stereo picture
+
+    Attributes:
+        status: 'idle' (not initialised), 'standing', 'walking'.
+        last_error: reason the last plan or step was rejected ('' if none).
+        T_map_odom: latest ICP correction (identity until :meth:`apply_correction`).
+    """
+
+    def __init__(self, model: RobotModel, config: WalkingConfig = WalkingConfig(),
+                 height: gaitlib.HeightFn = None) -> None:
+        self.model = model
+        self.config = config
+        c = config
+        self.swing_s = c.swing_duration_s or model.swing_duration_s
+        self.shift_s = c.shift_duration_s or model.shift_duration_s
+        self.margin_m = c.stability_margin_m or model.stability_margin_m
+        self.clearance_m = c.terrain_clearance_m or 0.5 * model.swing_height_m
+        self.height = height
+        self.T_map_odom = np.eye(4)
+        self.status = 'idle'
+        self.last_error = ''
+        self._feet = None          # (4, 3) contact points (odom)
+        self._body = None          # (x, y, z, yaw) at rest (odom)
+        self._queue: list = []
+        self._plan_t = -np.inf
+        self._seg: Optional[_Segment] = None
+        self._still_since = -np.inf
+        self._last_capture = -np.inf
+        self._q_last = None
+        self._t = 0.0
+        self._pending_swing: Optional[_Step] = None
+        self._phi_ref = None       # (4, 2) shank pitch and roll angles when the contact was set
+        self.steps_done = 0
+        self.last_margin_m = np.nan
+        self.last_ik_reasons: tuple = ()
+
+    # -- inputs ---------------------------------------------------------------------------
+    def reset(self, t: float, q: Optional[np.ndarray] = None,
+              T_odom_base: Optional[np.ndarray] = None) -> None:
+        """(Re)initialise at time ``t`` [s] from measured joint angles (default: standing).
+
+        The stance feet are placed by FK of ``q`` from the body pose ``T_odom_base``
+        (default: identity, i.e. the odom frame starts at the body). The body is taken level.
+        """
+        m = self.model
+        q = kinematics.standing_joint_angles(m) if q is None else \
+            np.asarray(q, dtype=float).reshape(4, 3)
+        if not np.all(np.isfinite(q)):
+            raise ValueError('reset: joint angles contain NaN')
+        T = np.eye(4) if T_odom_base is None else np.asarray(T_odom_base, dtype=float)
+        yaw = float(np.arctan2(T[1, 0], T[0, 0]))
+        T_level = make_T(rot_z(yaw), T[:3, 3])
+        feet = transform_points(T_level, kinematics.forward(m, q))
+        feet[:, 2] -= m.foot_radius_m
+        self._feet = feet
+        self._phi_ref = _shank_angles(q)
+        self._body = np.array([T[0, 3], T[1, 3], T[2, 3], yaw])
+        self._seg = None
+        self._pending_swing = None
+        self._queue = []
+        self._t = float(t)
+        self._still_since = float(t)
+        self._q_last = q.reshape(12)
+        self.status = 'standing'
+
+    def set_height_map(self, height: gaitlib.HeightFn) -> None:
+        """Terrain for swing clearance: callable ``xy (N, 2) -> z (N,)`` or GridMap (map frame)."""
+        self.height = height
+
+    def apply_correction(self, T_map_odom: np.ndarray) -> None:
+        """Re-anchor dead reckoning: the latest ICP estimate of ``T_map_odom`` (4x4)."""
+        T = np.asarray(T_map_odom, dtype=float)
+        if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+            raise ValueError(f'T_map_odom must be a finite 4x4 matrix, got shape {T.shape}')
+        R = T[:3, :3]
+        if np.abs(R.T @ R - np.eye(3)).max() > 1e-3 or abs(np.linalg.det(R) - 1.0) > 1e-3:
+            raise ValueError('T_map_odom rotation is not orthonormal')
+        self.T_map_odom = T.copy()
+
+    def set_footsteps(self, legs: np.ndarray, positions: np.ndarray, gait: str, t: float,
+                      frame: str = 'odom') -> None:
+        """Replace the pending footsteps (the step in progress finishes first).
+
+        Args:
+            legs: ``(N,)`` leg indices (LF=0, RF=1, LH=2, RH=3) in execution order.
+            positions: ``(N, 3)`` contact points [m] in ``frame``.
+            gait: 'walk' (one leg at a time), 'trot' (consecutive diagonal pairs) or 'stand'.
+            t: time the plan was received / made [s] (for ``plan_timeout_s``).
+            frame: 'odom' or 'map' (converted with the current ``T_map_odom``).
+
+        Raises ValueError (and keeps the previous plan) on malformed input.
+        """
+        legs = np.asarray(legs, dtype=int).reshape(-1)
+        pos = np.asarray(positions, dtype=float).reshape(-1, 3)
+        if len(legs) != len(pos):
+            raise ValueError(f'{len(legs)} legs but {len(pos)} positions')
+        if np.any((legs < 0) | (legs > 3)):
+            raise ValueError(f'leg indices must be 0..3, got {sorted(set(legs.tolist()))}')
+        if not np.all(np.isfinite(pos)):
+            raise ValueError('footstep positions contain NaN or inf')
+        if gait not in ('walk', 'trot', 'stand'):
+            raise ValueError(f"gait must be 'walk', 'trot' or 'stand', got {gait!r}")
+        if frame == 'map':
+            pos = transform_points(invert(self.T_map_odom), pos)
+        elif frame != 'odom':
+            raise ValueError(f"frame must be 'odom' or 'map', got {frame!r}")
+        steps = []
+        if gait == 'trot':
+            if len(legs) % 2:
+                raise ValueError('trot footsteps come in diagonal pairs; got an odd count')
+            for k in range(0, len(legs), 2):
+                pair = tuple(sorted((int(legs[k]), int(legs[k + 1]))))
+                if pair not in [tuple(sorted(p)) for p in gaitlib.TROT_PAIRS]:
+                    raise ValueError(f'trot step {k // 2} pairs {LEG_NAMES[pair[0]]} and '
+                                     f'{LEG_NAMES[pair[1]]}, not a diagonal')
+                steps.append(_Step((int(legs[k]), int(legs[k + 1])), pos[k:k + 2], 'trot'))
+        elif gait == 'walk':
+            steps = [_Step((int(lg),), p[None], 'walk') for lg, p in zip(legs, pos)]
+        self._queue = steps
+        self._plan_t = float(t)
+        self.last_error = ''
+
+    def clear_plan(self) -> None:
+        """Drop the pending footsteps (the step in progress finishes)."""
+        self._queue = []
+
+    # -- main tick ------------------------------------------------------------------------
+    def update(self, t: float, q: Optional[np.ndarray] = None,
+               dq: Optional[np.ndarray] = None) -> JointCommand:
+        """Joint targets at time ``t`` [s]; ``q``/``dq`` (12,) measured joint state (optional).
+
+        The first call initialises the stance from ``q`` if :meth:`reset` was not called.
+        """
+        t = float(t)
+        if self._feet is None:
+            self.reset(t, q)
+        self._t = t
+        while self._seg is not None and t >= self._seg.t_end:
+            self._finish_segment()
+            self._seg = self._next_segment(max(t, self._t))
+        if self._seg is None:
+            self._seg = self._next_segment(t)
+        self._update_still(t, dq)
+        if self._seg is None:
+            self.status = 'standing'
+            qs = self._stand_q()
+            return JointCommand(qs, np.zeros(12))
+        self.status = 'walking'
+        tau = t - self._seg.t0
+        return JointCommand(self._seg.spline(tau), self._seg.spline(tau, 1))
+
+    # -- outputs --------------------------------------------------------------------------
+    @property
+    def odom_pose(self) -> np.ndarray:
+        """``T_odom_base`` (4x4): dead reckoning along the desired body trajectory."""
+        return gaitlib.pose_to_T(self._body_now())
+
+    @property
+    def map_pose(self) -> np.ndarray:
+        """``T_map_base`` = ``T_map_odom @ T_odom_base``."""
+        return self.T_map_odom @ self.odom_pose
+
+    def odom_velocity(self) -> tuple:
+        """Desired body ``(v (3,), w (3,))`` in odom [m/s, rad/s] at the last update time."""
+        if self._seg is None or not self._seg.moves_body:
+            return np.zeros(3), np.zeros(3)
+        h = 1e-3
+        tau = np.clip(self._t - self._seg.t0, 0.0, self._seg.duration)
+        a = self._seg.body_fn(max(tau - h, 0.0))
+        b = self._seg.body_fn(min(tau + h, self._seg.duration))
+        dt = min(tau + h, self._seg.duration) - max(tau - h, 0.0)
+        d = (b - a) / dt if dt > 0 else np.zeros(4)
+        return d[:3], np.array([0.0, 0.0, d[3]])
+
+    @property
+    def feet(self) -> np.ndarray:
+        """``(4, 3)`` current stance contact points (odom); swing feet at their lift-off point."""
+        return None if self._feet is None else self._feet.copy()
+
+    @property
+    def pending_steps(self) -> int:
+        """Footsteps (or trot pairs) not yet started."""
+        return len(self._queue)
+
+    def is_still(self, t: Optional[float] = None) -> bool:
+        """Body held still (desired) for ``still_settle_s`` and stance joints slow."""
+        t = self._t if t is None else float(t)
+        return t - self._still_since >= self.config.still_settle_s
+
+    def capture_due(self, t: float) -> bool:
+        """True (once per still window, at most every ``capture_min_interval_s``) when a
+        stereo picture should be taken now; records the capture."""
+        if self.is_still(t) and t - self._last_capture >= self.config.capture_min_interval_s:
+            self._last_capture = float(t)
+            return True
+        return False
+
+    # -- internals ------------------------------------------------------------------------
+    def _body_now(self) -> np.ndarray:
+        if self._body is None:
+            return np.zeros(4)
+        if self._seg is None:
+            return self._body.copy()
+        tau = np.clip(self._t - self._seg.t0, 0.0, self._seg.duration)
+        return self._seg.body_fn(tau)
+
+    def _update_still(self, t: float, dq: Optional[np.ndarray]) -> None:
+        body_moving = self._seg is not None and self._seg.moves_body
+        joints_moving = False
+        if dq is not None:
+            dq = np.asarray(dq, dtype=float).reshape(4, 3)
+            stance = np.ones(4, dtype=bool)
+            if self._seg is not None:
+                stance[list(self._seg.legs)] = False
+            joints_moving = bool(np.any(np.abs(dq[stance]) > self.config.still_joint_speed_rad_s))
+        if body_moving or joints_moving:
+            self._still_since = np.inf
+        elif not np.isfinite(self._still_since):
+            self._still_since = t
+
+    def _stand_q(self) -> np.ndarray:
+        res = self._ik(gaitlib.pose_to_T(self._body), self._feet)
+        if res is None:
+            return self._q_last.copy()
+        self._q_last = res.reshape(12)
+        return self._q_last.copy()
+
+    def _ik(self, T_odom_base: np.ndarray, feet_contact: np.ndarray) -> Optional[np.ndarray]:
+        centres = np.array(feet_contact, dtype=float)
+        centres[:, 2] += self.model.foot_radius_m
+        r = kinematics.solve_ik(self.model, kinematics.feet_in_base(T_odom_base, centres))
+        return r.q if r.all_ok else None
+
+    def _finish_segment(self) -> None:
+        seg = self._seg
+        self._feet = seg.feet_end.copy()
+        self._body = seg.body_end.copy()
+        self._q_last = seg.spline(seg.duration)
+        self._phi_ref = _shank_angles(self._q_last.reshape(4, 3))
+        if seg.kind == 'swing':
+            self.steps_done += len(seg.legs)
+
+    def _next_segment(self, t0: float) -> Optional[_Segment]:
+        if self._pending_swing is not None:
+            step = self._pending_swing
+            self._pending_swing = None
+            return self._make_swing(step, t0)
+        if self._queue and t0 - self._plan_t <= self.config.plan_timeout_s:
+            step = self._queue.pop(0)
+            seg = self._make_shift(step, t0)
+            if seg is None:
+                self._queue = []
+                return self._recenter(t0)
+            self._pending_swing = step
+            if seg.duration <= 0:
+                self._pending_swing = None
+                return self._make_swing(step, t0)
+            return seg
+        if self._queue:
+            self.last_error = (f'plan is older than plan_timeout_s={self.config.plan_timeout_s}'
+                               f' s; standing')
+            self._queue = []
+        return self._recenter(t0)
+
+    def _recenter(self, t0: float) -> Optional[_Segment]:
+        if not self.config.recenter:
+            return None
+        goal = gaitlib.body_pose_from_feet(self._feet, self.model.standing_height_m)
+        if np.linalg.norm(goal[:3] - self._body[:3]) < 2e-3 and abs(goal[3] - self._body[3]) \
+                < 2e-3:
+            return None
+        return self._shift_segment(goal, t0, legs_swing=())
+
+    def _step_error(self, msg: str) -> None:
+        self.last_error = msg
+
+    def _com_offset(self, body: np.ndarray, feet: np.ndarray) -> Optional[np.ndarray]:
+        """COM minus body origin, world x-y, for the robot at ``body`` on ``feet``."""
+        T = gaitlib.pose_to_T(body)
+        q = self._ik(T, feet)
+        if q is None:
+            return None
+        com = transform_points(T, kinematics.com_base(self.model, q))
+        return com[:2] - body[:2]
+
+    def _make_shift(self, step: _Step, t0: float) -> Optional[_Segment]:
+        m = self.model
+        legs = list(step.legs)
+        targets = np.array(step.targets, dtype=float)
+        targets[:, 2] -= self.config.touchdown_depth_m
+        d = np.linalg.norm(targets[:, :2] - self._feet[legs, :2], axis=1)
+        if np.any(d > self.config.max_step_factor * m.max_step_length_m):
+            self._step_error(f'step of {LEG_NAMES[legs[int(np.argmax(d))]]} is {d.max():.3f} m,'
+                             f' longer than {self.config.max_step_factor} x max_step_length_m')
+            return None
+        after = self._feet.copy()
+        after[legs] = targets
+        goal = gaitlib.body_pose_from_feet(after, m.standing_height_m)
+        stay = [k for k in range(4) if k not in legs]
+        support = self._feet[stay, :2]
+        body = goal.copy()
+        margin = self.margin_m if len(stay) >= 3 else 0.0
+        for _ in range(3):
+            off0 = self._com_offset(body, self._feet)
+            off1 = self._com_offset(body, after)
+            if off0 is None or off1 is None:
+                self._step_error(f'body pose for stepping {"+".join(LEG_NAMES[k] for k in legs)}'
+                                 f' is out of the legs\' reach')
+                return None
+            mean = 0.5 * (off0 + off1)
+            extra = 0.5 * float(np.linalg.norm(off1 - off0))
+            cog, got = gaitlib.project_into_support(goal[:2] + mean, support, margin + extra)
+            body[:2] = cog - mean
+        self.last_margin_m = got - extra
+        return self._shift_segment(body, t0, legs_swing=legs)
+
+    def _shift_segment(self, goal: np.ndarray, t0: float, legs_swing) -> Optional[_Segment]:
+        start = self._body.copy()
+        dyaw = (goal[3] - start[3] + np.pi) % (2 * np.pi) - np.pi
+        delta = np.concatenate([goal[:3] - start[:3], [dyaw]])
+        dur = self.shift_s * float(np.clip(np.linalg.norm(delta[:2]) / max(
+            0.25 * self.model.body_move_per_period_m, 1e-6), 0.3, 1.0))
+        feet = self._feet.copy()
+
+        def body_fn(tau, start=start, delta=delta, dur=dur):
+            b, _ = gaitlib.min_jerk(np.asarray(tau) / dur)
+            return start + np.multiply.outer(b, delta) if np.ndim(tau) else start + b * delta
+
+        def feet_fn(tau):
+            return np.broadcast_to(feet, np.shape(tau) + (4, 3))
+
+        seg = self._build(t0, dur, 'shift', body_fn, feet_fn)
+        if seg is None:
+            self._step_error('body shift leaves the legs\' reach')
+            return None
+        seg.feet_end = feet + seg.roll_end
+        seg.body_end = start + delta
+        seg.legs = ()
+        return seg
+
+    def _make_swing(self, step: _Step, t0: float) -> Optional[_Segment]:
+        m = self.model
+        legs = list(step.legs)
+        targets = np.array(step.targets, dtype=float)
+        targets[:, 2] -= self.config.touchdown_depth_m
+        dur = self.swing_s * (self.config.trot_swing_fraction if step.gait == 'trot' else 1.0)
+        swings = []
+        for k, leg in enumerate(legs):
+            p0, p1 = self._feet[leg], targets[k]
+            apex = self._apex(p0, p1)
+            swings.append(gaitlib.SwingTrajectory(p0, p1, apex, dur))
+        body = self._body.copy()
+        feet0 = self._feet.copy()
+
+        def body_fn(tau):
+            return np.broadcast_to(body, np.shape(tau) + (4,)).copy() if np.ndim(tau) \
+                else body.copy()
+
+        def feet_fn(tau):
+            f = np.broadcast_to(feet0, np.shape(tau) + (4, 3)).copy()
+            for leg, sw in zip(legs, swings):
+                f[..., leg, :] = sw.position(tau)
+            return f
+
+        rolling = np.ones(4, dtype=bool)
+        rolling[legs] = False
+        seg = self._build(t0, dur, 'swing', body_fn, feet_fn, rolling)
+        if seg is None:
+            self._step_error(f'swing of {"+".join(LEG_NAMES[k] for k in legs)} leaves the '
+                             f'leg\'s reach')
+            self._queue = []
+            return self._recenter(t0)
+        after = feet0 + seg.roll_end
+        after[legs] = targets
+        seg.feet_end = after
+        seg.body_end = body
+        seg.legs = tuple(legs)
+        seg.moves_body = False
+        return seg
+
+    def _apex(self, p0: np.ndarray, p1: np.ndarray) -> float:
+        """Swing apex in odom z, clearing the (map-frame) terrain under the path."""
+        T = self.T_map_odom
+        a, b = transform_points(T, p0[None])[0], transform_points(T, p1[None])[0]
+        apex_map = gaitlib.swing_apex(a, b, self.height, self.clearance_m,
+                                      corridor_m=1.5 * self.model.foot_radius_m,
+                                      min_lift_m=self.model.swing_height_m)
+        return apex_map - (a[2] - p0[2])
+
+    def _build(self, t0: float, dur: float, kind: str, body_fn, feet_fn,
+               rolling: Optional[np.ndarray] = None) -> Optional[_Segment]:
+        """Sample the Cartesian motion, IK every knot, spline the joints.
+
+        Stance feet (``rolling`` True) roll on their spheres: the contact moves by
+        ``r * (change of shank angle)`` (pure rolling), which the IK targets follow so that
+        the PD does not fight the rolling (which would make the feet slip).
+        """
+        n = max(int(np.ceil(dur / self.config.knot_dt_s)), 2)
+        taus = np.linspace(0.0, dur, n + 1)
+        bodies = body_fn(taus)
+        feet = feet_fn(taus)
+        T = np.zeros((len(taus), 4, 4))
+        c, s = np.cos(bodies[:, 3]), np.sin(bodies[:, 3])
+        T[:, 0, 0], T[:, 0, 1], T[:, 1, 0], T[:, 1, 1] = c, -s, s, c
+        T[:, 2, 2] = T[:, 3, 3] = 1.0
+        T[:, :3, 3] = bodies[:, :3]
+        centres = feet.copy()
+        centres[..., 2] += self.model.foot_radius_m
+        rolling = np.ones(4, dtype=bool) if rolling is None else rolling
+        roll = np.zeros_like(centres)
+        for _ in range(4):
+            local = np.einsum('nji,nkj->nki', T[:, :3, :3], centres + roll
+                              - bodies[:, None, :3])
+            res = kinematics.solve_ik(self.model, local)
+            if not res.all_ok:
+                self.last_ik_reasons = res.reasons
+                return None
+            roll = self._rolling(res.q, c, s) * rolling[:, None]
+        q = res.q.reshape(len(taus), 12)
+        spline = CubicSpline(taus, q, axis=0, bc_type='clamped')
+        seg = _Segment(kind=kind, t0=t0, duration=dur, spline=spline, body_fn=body_fn,
+                       feet_end=None, body_end=None)
+        seg.roll_end = roll[-1]
+        return seg
+
+    def _rolling(self, q: np.ndarray, cos_yaw: np.ndarray, sin_yaw: np.ndarray) -> np.ndarray:
+        """``(n, 4, 3)`` odom displacement of rolling spherical feet since ``_phi_ref``."""
+        d = (_shank_angles(q) - self._phi_ref) * self.model.foot_radius_m
+        dx, dy = d[..., 0], -d[..., 1]
+        c, s = cos_yaw[:, None], sin_yaw[:, None]
+        return np.stack([c * dx - s * dy, s * dx + c * dy, np.zeros_like(dx)], axis=-1)
+
+
+def _shank_angles(q: np.ndarray) -> np.ndarray:
+    """``(..., 4, 2)`` shank pitch (hip flexion + knee) and roll (abduction) [rad]."""
+    q = np.asarray(q, dtype=float)
+    return np.stack([q[..., 1] + q[..., 2], q[..., 0]], axis=-1)
+
+
+__all__ = ['WalkingConfig', 'WalkingController', 'JointCommand']
