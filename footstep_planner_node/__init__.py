@@ -1,0 +1,1 @@
+"""footstep_planner: contact patches, cost grid and receding-horizon footstep plans."""

@@ -1,0 +1,355 @@
+"""footstep_planner: contact patches + cost map -> receding-horizon footstep plan with a gait.
+
+Subscriptions:
+    /map/filled      terrain_msgs/TerrainGrid (reliable, transient local): the filled map with
+                     its ``cost`` layer (or, with ``planner.cost_source`` kolter/shao, any map
+                     with ``elevation``). Every new map triggers a replan (receding horizon).
+    /stereo/points   sensor_msgs/PointCloud2, organized, camera frame (sensor data)
+    /imu/data        sensor_msgs/Imu (sensor data): absolute orientation -> gravity
+    /icp/pose        geometry_msgs/PoseStamped (reliable): robot pose ``T_map_base``
+    /goal_pose       geometry_msgs/PoseStamped (reliable): goal; without one, straight ahead
+Publications:
+    /footstep_plan            terrain_msgs/FootstepPlan (reliable, transient local)
+    /footstep_plan/markers    visualization_msgs/MarkerArray (reliable)
+    /contact_patches          terrain_msgs/ContactPatchArray (reliable), in ``map`` when the
+                              robot pose is known, else in the cloud's frame
+    /contact_patches/markers  visualization_msgs/MarkerArray (reliable)
+    /map/cost_grid            nav_msgs/OccupancyGrid (reliable, transient local): cost scaled
+                              to 0..100 for viewers (-1 unknown)
+    ~/diagnostics             diagnostic_msgs/DiagnosticArray: counters of refused input
+
+Bad input never kills the node: a malformed message is counted and logged once; a map or pose
+the planner cannot use yields a plan with an explanatory status and no footsteps.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Optional
+
+import numpy as np
+from geometry_msgs.msg import Point, PoseStamped, Vector3
+from nav_msgs.msg import OccupancyGrid
+from rclpy.node import Node
+from sensor_msgs.msg import Imu, PointCloud2
+from terrain_msgs.msg import ContactPatch, ContactPatchArray, Footstep as FootstepMsg
+from terrain_msgs.msg import FootstepPlan as FootstepPlanMsg
+from terrain_msgs.msg import TerrainGrid
+from visualization_msgs.msg import Marker, MarkerArray
+
+from terrain_perception import footsteps as fs
+from terrain_perception.config import param
+from terrain_perception.features import CostConfig
+from terrain_perception.grid import GridMap
+from terrain_perception.patches import PatchConfig, PatchSet, find_patches, gravity_in_camera
+from terrain_perception.robot_model import available_robots, load_robot_model
+from terrain_ros.conversions import (cloud_to_xyz, make_header, matrix_to_pose, msg_to_grid,
+                                     pose_to_matrix, stamp_to_sec)
+from terrain_ros.node import Counters, run_node
+from terrain_ros.params import declare_config
+from terrain_ros.qos import LATCHED_QOS, RELIABLE_QOS, SENSOR_QOS
+
+LEG_COLOURS = {0: (1.0, 0.2, 0.2), 1: (0.2, 0.8, 0.2), 2: (0.2, 0.4, 1.0), 3: (1.0, 0.8, 0.1)}
+
+
+@dataclass(frozen=True)
+class FootstepNodeConfig:
+    """Node-level parameters (the algorithms' own are under ``patches.``, ``planner.``,
+    ``cost.``)."""
+
+    robot: str = param('littledog', 'robot profile in config/robots/ (geometry, camera mount, '
+                       'gait defaults)')
+    find_patches: bool = param(True, 'run the contact-patch detector on /stereo/points')
+    use_patches: bool = param(True, 'let salient patches lower the foothold cost')
+    patch_max_age_s: float = param(2.0, 'patches older than this (vs the map stamp) are not '
+                                   'used for planning [s]', 0.0, 3600.0)
+    imu_max_age_s: float = param(0.5, 'largest stamp gap between a cloud and the IMU sample '
+                                 'used for its gravity [s]', 0.0, 3600.0)
+    cost_grid_max: float = param(1.0, 'cost shown as 100 in /map/cost_grid (higher is '
+                                 'clipped)', 1e-9, 1e9)
+    diagnostics_period_s: float = param(1.0, 'period of the counters message [s]', 0.05, 3600.0)
+
+
+def plan_to_msg(plan: fs.FootstepPlan, frame_id: str, stamp) -> FootstepPlanMsg:
+    """terrain_msgs/FootstepPlan of a core plan."""
+    msg = FootstepPlanMsg()
+    msg.header = make_header(frame_id, stamp)
+    msg.gait_mode = int(plan.gait)
+    msg.status = int(plan.status)
+    msg.status_text = str(plan.status_text)
+    msg.body_move_per_period = float(plan.body_move_per_period_m)
+    msg.final_body_pose = matrix_to_pose(plan.final_body_pose)
+    for s in plan.footsteps:
+        f = FootstepMsg()
+        f.leg = int(s.leg)
+        f.position = Point(x=float(s.position[0]), y=float(s.position[1]),
+                           z=float(s.position[2]))
+        f.cost = float(s.cost)
+        f.step_index = int(s.step_index)
+        f.patch_index = int(s.patch_index)
+        msg.footsteps.append(f)
+    return msg
+
+
+def patches_to_msg(p: PatchSet, frame_id: str, stamp) -> ContactPatchArray:
+    """terrain_msgs/ContactPatchArray of a core patch set (poses already in ``frame_id``)."""
+    from terrain_perception.transforms import make_T
+    msg = ContactPatchArray()
+    msg.header = make_header(frame_id, stamp)
+    msg.gravity = Vector3(x=float(p.gravity[0]), y=float(p.gravity[1]), z=float(p.gravity[2]))
+    msg.fixation_point = Point(x=float(p.fixation[0]), y=float(p.fixation[1]),
+                               z=float(p.fixation[2]))
+    rims = p.boundary(12)
+    for i in range(len(p)):
+        c = ContactPatch()
+        c.pose = matrix_to_pose(make_T(p.R[i], p.vertex[i]))
+        c.kx, c.ky = float(p.kx[i]), float(p.ky[i])
+        c.radius = float(p.radius[i])
+        c.boundary = [Point(x=float(q[0]), y=float(q[1]), z=float(q[2])) for q in rims[i]]
+        c.residual = float(p.residual[i])
+        c.don, c.dong = float(p.don[i]), float(p.dong[i])
+        c.fixation_distance = float(p.fixation_distance[i])
+        c.support_points = int(p.support_points[i])
+        msg.patches.append(c)
+    return msg
+
+
+def cost_to_occupancy(grid: GridMap, cost: np.ndarray, cost_max: float, stamp) -> OccupancyGrid:
+    """nav_msgs/OccupancyGrid (row-major, row = +y) of a cost layer scaled to 0..100."""
+    msg = OccupancyGrid()
+    msg.header = make_header(grid.frame_id, stamp)
+    nx, ny = grid.shape
+    msg.info.resolution = float(grid.resolution_m)
+    msg.info.width, msg.info.height = nx, ny
+    msg.info.origin.position.x, msg.info.origin.position.y = grid.origin_xy
+    msg.info.origin.orientation.w = 1.0
+    with np.errstate(invalid='ignore'):
+        val = np.clip(np.rint(np.asarray(cost, np.float64) / cost_max * 100.0), 0, 100)
+    val = np.where(np.isfinite(cost), val, -1).astype(np.int8)
+    msg.data = val.T.ravel().tolist()
+    return msg
+
+
+class FootstepPlannerNode(Node):
+    """Contact patches, cost grid and footstep plans; see the module docstring."""
+
+    def __init__(self, **kwargs) -> None:
+        super().__init__('footstep_planner', **kwargs)
+        self.node_cfg: FootstepNodeConfig = declare_config(self, FootstepNodeConfig)
+        if self.node_cfg.robot not in available_robots():
+            raise ValueError(f'unknown robot {self.node_cfg.robot!r} '
+                             f'(known: {available_robots()})')
+        self.patch_cfg: PatchConfig = declare_config(self, PatchConfig, prefix='patches',
+                                                     on_change=self._on_patch_cfg)
+        self.plan_cfg: fs.PlannerConfig = declare_config(self, fs.PlannerConfig,
+                                                         prefix='planner',
+                                                         on_change=self._on_plan_cfg)
+        self.cost_cfg: CostConfig = declare_config(self, CostConfig, prefix='cost',
+                                                   on_change=self._on_cost_cfg)
+        self.robot = load_robot_model(self.node_cfg.robot)
+        self.planner = fs.FootstepPlanner(self.robot, self.plan_cfg, self.cost_cfg)
+        self.counters = Counters(self)
+
+        self.grid: Optional[GridMap] = None
+        self.map_problem: Optional[fs.FootstepPlan] = None
+        self.T_map_base: Optional[np.ndarray] = None
+        self.goal_xy: Optional[np.ndarray] = None
+        self.imu: Optional[tuple] = None          # (stamp_s, quaternion xyzw)
+        self.patches_map: Optional[PatchSet] = None
+        self.patches_stamp: float = -np.inf
+        self.last_plan: Optional[fs.FootstepPlan] = None
+
+        self.pub_plan = self.create_publisher(FootstepPlanMsg, '/footstep_plan', LATCHED_QOS)
+        self.pub_plan_markers = self.create_publisher(MarkerArray, '/footstep_plan/markers',
+                                                      RELIABLE_QOS)
+        self.pub_patches = self.create_publisher(ContactPatchArray, '/contact_patches',
+                                                 RELIABLE_QOS)
+        self.pub_patch_markers = self.create_publisher(MarkerArray, '/contact_patches/markers',
+                                                       RELIABLE_QOS)
+        self.pub_cost = self.create_publisher(OccupancyGrid, '/map/cost_grid', LATCHED_QOS)
+
+        self.create_subscription(TerrainGrid, '/map/filled', self._on_map, LATCHED_QOS)
+        self.create_subscription(PointCloud2, '/stereo/points', self._on_cloud, SENSOR_QOS)
+        self.create_subscription(Imu, '/imu/data', self._on_imu, SENSOR_QOS)
+        self.create_subscription(PoseStamped, '/icp/pose', self._on_pose, RELIABLE_QOS)
+        self.create_subscription(PoseStamped, '/goal_pose', self._on_goal, RELIABLE_QOS)
+        self.create_timer(self.node_cfg.diagnostics_period_s, self.counters.publish)
+
+    # ------------------------------------------------------------------ parameters
+
+    def _on_patch_cfg(self, cfg: PatchConfig) -> None:
+        self.patch_cfg = cfg
+
+    def _on_plan_cfg(self, cfg: fs.PlannerConfig) -> None:
+        self.plan_cfg = cfg
+        self._rebuild_planner()
+
+    def _on_cost_cfg(self, cfg: CostConfig) -> None:
+        self.cost_cfg = cfg
+        self._rebuild_planner()
+
+    def _rebuild_planner(self) -> None:
+        self.planner = fs.FootstepPlanner(self.robot, self.plan_cfg, self.cost_cfg)
+        if self.grid is not None:
+            self.map_problem = self.planner.set_map(self.grid)
+
+    # ------------------------------------------------------------------ inputs
+
+    def _on_map(self, msg: TerrainGrid) -> None:
+        stamp = msg.header.stamp
+        try:
+            grid = msg_to_grid(msg)
+        except (ValueError, TypeError) as exc:
+            self.counters.bump('bad_map', f'unusable /map/filled: {exc}')
+            self.grid = None
+            self._publish_plan(fs.failed(fs.STATUS_BAD_MAP, f'map message unusable: {exc}'),
+                               msg.header.frame_id or 'map', stamp)
+            return
+        self.grid = grid
+        self.map_problem = self.planner.set_map(grid)
+        if self.map_problem is not None:
+            self.counters.bump('bad_map', self.map_problem.status_text)
+        else:
+            # Latched: late viewers get it, so publish regardless of current subscribers.
+            self.pub_cost.publish(cost_to_occupancy(grid, self.planner.cost,
+                                                    self.node_cfg.cost_grid_max, stamp))
+        self.replan(stamp)
+
+    def _on_pose(self, msg: PoseStamped) -> None:
+        try:
+            self.T_map_base = pose_to_matrix(msg.pose)
+        except ValueError as exc:
+            self.counters.bump('bad_pose', f'/icp/pose refused: {exc}')
+
+    def _on_goal(self, msg: PoseStamped) -> None:
+        p = msg.pose.position
+        xy = np.array([p.x, p.y], dtype=np.float64)
+        if not np.all(np.isfinite(xy)):
+            self.counters.bump('bad_goal', f'/goal_pose has a non-finite position {xy}')
+            return
+        self.goal_xy = xy
+        if self.grid is not None:
+            self.replan()
+
+    def _on_imu(self, msg: Imu) -> None:
+        q = msg.orientation
+        quat = np.array([q.x, q.y, q.z, q.w], dtype=np.float64)
+        if not np.all(np.isfinite(quat)) or np.linalg.norm(quat) < 1e-6 \
+                or msg.orientation_covariance[0] == -1.0:
+            self.counters.bump('bad_imu', 'IMU message without a usable orientation')
+            return
+        self.imu = (stamp_to_sec(msg.header.stamp), quat)
+
+    def _on_cloud(self, msg: PointCloud2) -> None:
+        if not self.node_cfg.find_patches:
+            return
+        if self.imu is None:
+            self.counters.bump('no_imu', 'cloud dropped: no IMU orientation received yet')
+            return
+        t = stamp_to_sec(msg.header.stamp)
+        if abs(t - self.imu[0]) > self.node_cfg.imu_max_age_s:
+            self.counters.bump('stale_imu', f'cloud dropped: newest IMU sample is '
+                                            f'{abs(t - self.imu[0]):.3f} s from the cloud')
+            return
+        try:
+            xyz = cloud_to_xyz(msg)
+            if xyz.ndim != 3:
+                raise ValueError('contact patches need an organized cloud (height > 1)')
+            R_imu_cam = (self.robot.T_base_imu[:3, :3].T @ self.robot.T_base_camera[:3, :3])
+            g = gravity_in_camera(self.imu[1], R_imu_cam)
+            cam = self.robot.camera
+            sx = xyz.shape[1] / cam.width
+            sy = xyz.shape[0] / cam.height
+            patches = find_patches(xyz, cam.fx * sx, cam.fy * sy, g, self.patch_cfg)
+        except ValueError as exc:
+            self.counters.bump('bad_cloud', f'cloud refused: {exc}')
+            return
+        frame = msg.header.frame_id
+        if self.T_map_base is not None:
+            patches = patches.transformed(self.T_map_base @ self.robot.T_base_camera)
+            frame = self.grid.frame_id if self.grid is not None else 'map'
+            self.patches_map, self.patches_stamp = patches, t
+        self.pub_patches.publish(patches_to_msg(patches, frame, msg.header.stamp))
+        if self.pub_patch_markers.get_subscription_count() > 0:
+            self.pub_patch_markers.publish(self._patch_markers(patches, frame, msg.header.stamp))
+
+    # ------------------------------------------------------------------ planning
+
+    def replan(self, stamp=None) -> fs.FootstepPlan:
+        """Plan on the current map, pose, goal and patches; publish and return the plan."""
+        frame = self.grid.frame_id if self.grid is not None else 'map'
+        if stamp is None:
+            stamp = self.grid.stamp_s if self.grid is not None else 0.0
+        if self.grid is None:
+            plan = fs.failed(fs.STATUS_NO_MAP, 'no usable map received yet')
+        elif self.map_problem is not None:
+            plan = self.map_problem
+        elif self.T_map_base is None:
+            plan = fs.failed(fs.STATUS_BAD_INPUT, 'no robot pose received yet on /icp/pose')
+        else:
+            patches = None
+            if (self.node_cfg.use_patches and self.patches_map is not None
+                    and len(self.patches_map)
+                    and abs(self.grid.stamp_s - self.patches_stamp)
+                    <= self.node_cfg.patch_max_age_s):
+                patches = (self.patches_map.vertex, self.patches_map.radius)
+            plan = self.planner.plan(self.T_map_base, self.goal_xy, patches=patches)
+        self._publish_plan(plan, frame, stamp)
+        return plan
+
+    def _publish_plan(self, plan: fs.FootstepPlan, frame: str, stamp) -> None:
+        self.last_plan = plan
+        if plan.status not in (fs.STATUS_OK, fs.STATUS_GOAL_REACHED):
+            self.counters.bump(f'plan_status_{plan.status}', plan.status_text,
+                               self.get_logger().info)
+        self.pub_plan.publish(plan_to_msg(plan, frame, stamp))
+        if self.pub_plan_markers.get_subscription_count() > 0:
+            self.pub_plan_markers.publish(self._plan_markers(plan, frame, stamp))
+
+    # ------------------------------------------------------------------ markers
+
+    def _plan_markers(self, plan: fs.FootstepPlan, frame: str, stamp) -> MarkerArray:
+        out = MarkerArray()
+        clear = Marker(action=Marker.DELETEALL)
+        clear.header = make_header(frame, stamp)
+        out.markers.append(clear)
+        for i, s in enumerate(plan.footsteps):
+            m = Marker()
+            m.header = make_header(frame, stamp)
+            m.ns, m.id, m.type, m.action = 'footsteps', i, Marker.SPHERE, Marker.ADD
+            m.pose.position = Point(x=float(s.position[0]), y=float(s.position[1]),
+                                    z=float(s.position[2]))
+            m.pose.orientation.w = 1.0
+            d = 2.0 * max(self.robot.foot_radius_m, 0.005)
+            m.scale = Vector3(x=d, y=d, z=d)
+            r, g, b = LEG_COLOURS[int(s.leg)]
+            m.color.r, m.color.g, m.color.b = r, g, b
+            m.color.a = float(max(0.3, 1.0 - 0.15 * s.step_index))
+            out.markers.append(m)
+        return out
+
+    def _patch_markers(self, p: PatchSet, frame: str, stamp) -> MarkerArray:
+        out = MarkerArray()
+        clear = Marker(action=Marker.DELETEALL)
+        clear.header = make_header(frame, stamp)
+        out.markers.append(clear)
+        rims = p.boundary(12)
+        for i in range(len(p)):
+            m = Marker()
+            m.header = make_header(frame, stamp)
+            m.ns, m.id, m.type, m.action = 'patches', i, Marker.LINE_STRIP, Marker.ADD
+            m.pose.orientation.w = 1.0
+            m.scale.x = 0.002
+            m.color.g, m.color.b, m.color.a = 0.8, 1.0, 1.0
+            m.points = [Point(x=float(q[0]), y=float(q[1]), z=float(q[2]))
+                        for q in np.vstack([rims[i], rims[i][:1]])]
+            out.markers.append(m)
+        return out
+
+
+def main(args=None) -> int:
+    return run_node(FootstepPlannerNode, args=args)
+
+
+if __name__ == '__main__':
+    main()

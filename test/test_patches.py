@@ -1,0 +1,336 @@
+"""Contact patches (paper 003): paraboloid fit, saliency filters, preprocessing, full pipeline."""
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from terrain_perception.camera import PinholeCamera
+from terrain_perception.grid import GridMap
+from terrain_perception.patches import (IntegralMoments, PatchConfig, bilateral_filter_cloud,
+                                        find_patches, fit_paraboloids, fixation_point,
+                                        gravity_in_camera, integral_normals,
+                                        median_downsample_2x2, patch_filters, saliency,
+                                        smallest_eigenvectors)
+from terrain_perception.raycast import raycast_points
+from terrain_perception.transforms import R_to_quat, rpy_to_R
+
+
+def _sample_paraboloids(rng, n_patch, n_pts, radius, noise, kx, ky, symmetric=False):
+    """Random poses; points uniform in a disc of the patch's local x-y plane (+ noise).
+    ``symmetric``: every point (x, y) has its twin (-x, -y), so the data centre is the vertex."""
+    Rs = np.stack([rpy_to_R(*rng.uniform(-0.6, 0.6, 3)) for _ in range(n_patch)])
+    ts = rng.uniform(-1, 1, (n_patch, 3)) + [0, 0, 1.5]
+    m = n_pts // 2 if symmetric else n_pts
+    rad = radius * np.sqrt(rng.random((n_patch, m)))
+    ang = rng.random((n_patch, m)) * 2 * np.pi
+    x, y = rad * np.cos(ang), rad * np.sin(ang)
+    if symmetric:
+        x, y = np.concatenate([x, -x], 1), np.concatenate([y, -y], 1)
+    z = 0.5 * (kx[:, None] * x * x + ky[:, None] * y * y)
+    loc = np.stack([x, y, z], -1) + rng.normal(0, noise, (n_patch, n_pts, 3))
+    pts = np.einsum('pij,pnj->pni', Rs, loc) + ts[:, None]
+    return pts, Rs, ts
+
+
+def _true_principal_curvatures(kx, ky, x, y):
+    """Principal curvatures (min, max) of z = 0.5 (kx x^2 + ky y^2) at (x, y) (Monge patch)."""
+    fx, fy = kx * x, ky * y
+    W = np.sqrt(1 + fx * fx + fy * fy)
+    first = np.stack([np.stack([1 + fx * fx, fx * fy], -1), np.stack([fx * fy, 1 + fy * fy], -1)],
+                     -2)
+    second = np.zeros_like(first)
+    second[..., 0, 0], second[..., 1, 1] = kx / W, ky / W
+    k = np.sort(np.linalg.eigvals(np.linalg.solve(first, second)).real, axis=-1)
+    return k[..., 0], k[..., 1]
+
+
+def _check_fit(fit, Rs, ts, kx, ky, k_tol, ang_tol_deg, z_tol):
+    # The fitted vertex is where the patch sits on the data (the data centre); compare with the
+    # true principal curvatures there (equal to kx, ky when the data centre is the vertex).
+    assert np.all(fit.kx <= fit.ky)
+    q = np.einsum('pji,pj->pi', Rs, fit.vertex - ts)
+    k1, k2 = _true_principal_curvatures(kx, ky, q[:, 0], q[:, 1])
+    np.testing.assert_allclose(fit.kx, k1, atol=k_tol)
+    np.testing.assert_allclose(fit.ky, k2, atol=k_tol)
+    # The vertex lies on the true surface, and the fitted normal is the true normal there.
+    surf = 0.5 * (kx * q[:, 0] ** 2 + ky * q[:, 1] ** 2)
+    assert np.abs(q[:, 2] - surf).max() < z_tol
+    n_true_loc = np.stack([-kx * q[:, 0], -ky * q[:, 1], np.ones(len(q))], -1)
+    n_true = np.einsum('pij,pj->pi', Rs, n_true_loc)
+    n_true /= np.linalg.norm(n_true, axis=1, keepdims=True)
+    ang = np.degrees(np.arccos(np.clip(np.einsum('pi,pi->p', n_true, fit.R[:, :, 2]), -1, 1)))
+    assert ang.max() < ang_tol_deg
+    # Principal x direction matches (up to sign) where the curvatures are well separated.
+    sep = np.abs(kx - ky) > 8.0
+    cosx = np.abs(np.einsum('pi,pi->p', Rs[:, :, 0], fit.R[:, :, 0]))
+    assert np.degrees(np.arccos(np.clip(cosx[sep], -1, 1))).max() < 4 * ang_tol_deg
+    # Frames are proper rotations.
+    np.testing.assert_allclose(np.einsum('pji,pjk->pik', fit.R, fit.R),
+                               np.broadcast_to(np.eye(3), fit.R.shape), atol=1e-9)
+    np.testing.assert_allclose(np.linalg.det(fit.R), 1.0, atol=1e-9)
+
+
+def test_paraboloid_fit_exact_data_recovers_curvatures_and_pose():
+    rng = np.random.default_rng(1)
+    kx = rng.uniform(-12, 2, 40)
+    ky = kx + rng.uniform(0, 20, 40)
+    pts, Rs, ts = _sample_paraboloids(rng, 40, 50, 0.1, 0.0, kx, ky, symmetric=True)
+    fit = fit_paraboloids(pts, np.ones(pts.shape[:2], bool), Rs[:, :, 2], iterations=10)
+    _check_fit(fit, Rs, ts, kx, ky, k_tol=1e-4, ang_tol_deg=1e-3, z_tol=1e-7)
+    np.testing.assert_allclose(fit.vertex, ts, atol=1e-7)    # data centre = vertex here
+    assert fit.rms_euclidean.max() < 1e-7
+
+
+def test_paraboloid_fit_noisy_data_and_padding_mask():
+    rng = np.random.default_rng(2)
+    kx = rng.uniform(-12, 2, 60)
+    ky = kx + rng.uniform(0, 20, 60)
+    real, Rs, ts = _sample_paraboloids(rng, 60, 40, 0.1, 0.0005, kx, ky, symmetric=True)
+    pts = np.concatenate([real, np.full((60, 10, 3), 1e3)], axis=1)   # padding rows: garbage
+    mask = np.ones(pts.shape[:2], bool)
+    mask[:, 40:] = False
+    fit = fit_paraboloids(pts, mask, Rs[:, :, 2], iterations=6)
+    _check_fit(fit, Rs, ts, kx, ky, k_tol=1.5, ang_tol_deg=1.0, z_tol=0.001)
+    assert np.median(np.abs(np.r_[fit.kx - kx, fit.ky - ky])) < 0.4
+    np.testing.assert_array_equal(fit.count, 40)
+    # The residual estimates the noise along the normal (0.5 mm).
+    assert 0.0003 < np.median(fit.rms_euclidean) < 0.0007
+
+
+def test_paraboloid_fit_off_vertex_data_sits_on_the_surface():
+    """Data not centred on the paraboloid's vertex: the patch is the osculating paraboloid at
+    the data centre, so its vertex is on the surface and its curvatures are (up to the cubic
+    terms it cannot represent) the surface's principal curvatures there."""
+    rng = np.random.default_rng(8)
+    kx = rng.uniform(-10, 0, 40)
+    ky = kx + rng.uniform(0, 12, 40)
+    pts, Rs, ts = _sample_paraboloids(rng, 40, 50, 0.1, 0.0, kx, ky)
+    fit = fit_paraboloids(pts, np.ones(pts.shape[:2], bool), Rs[:, :, 2])
+    q = np.einsum('pji,pj->pi', Rs, fit.vertex - ts)
+    assert np.abs(q[:, 2] - 0.5 * (kx * q[:, 0] ** 2 + ky * q[:, 1] ** 2)).max() < 0.0005
+    k1, k2 = _true_principal_curvatures(kx, ky, q[:, 0], q[:, 1])
+    assert np.abs(np.r_[fit.kx - k1, fit.ky - k2]).max() < 1.0
+    assert fit.rms_euclidean.max() < 0.001
+
+
+def test_levenberg_marquardt_improves_on_the_closed_form_start():
+    rng = np.random.default_rng(3)
+    kx = np.full(30, -10.0)
+    ky = np.full(30, 15.0)
+    pts, Rs, _ = _sample_paraboloids(rng, 30, 50, 0.1, 0.0, kx, ky, symmetric=True)
+    start = fit_paraboloids(pts, np.ones(pts.shape[:2], bool), Rs[:, :, 2], iterations=0)
+    refined = fit_paraboloids(pts, np.ones(pts.shape[:2], bool), Rs[:, :, 2], iterations=8)
+    assert np.all(refined.rms_algebraic <= start.rms_algebraic + 1e-12)
+    assert refined.rms_algebraic.mean() < 0.5 * start.rms_algebraic.mean()
+
+
+def test_fit_rejects_bad_input():
+    with pytest.raises(ValueError, match='6 points'):
+        fit_paraboloids(np.zeros((2, 5, 3)), np.ones((2, 5), bool), [0, 0, 1])
+    with pytest.raises(ValueError, match=r'\(P, n, 3\)'):
+        fit_paraboloids(np.zeros((2, 8)), np.ones((2, 8), bool), [0, 0, 1])
+
+
+def test_curvature_and_residual_filters_keep_and_drop_hand_made_neighbourhoods():
+    cfg = PatchConfig()                   # paper: kappa in [-13.6, 19.7] 1/m, d_max 0.01 m
+    rng = np.random.default_rng(4)
+    cases = {  # name: (kx, ky, noise [m], expected curvature_ok, expected residual_ok)
+        'gentle bowl': (3.0, 5.0, 0.0005, True, True),
+        'sharp bump': (-30.0, -25.0, 0.0005, False, True),
+        'sharp dip': (10.0, 30.0, 0.0005, False, True),
+        'saddle within limits': (-10.0, 15.0, 0.0005, True, True),
+        'rubble': (0.0, 0.0, 0.03, None, False),
+    }
+    kx = np.array([c[0] for c in cases.values()])
+    ky = np.array([c[1] for c in cases.values()])
+    pts = []
+    Rs = []
+    for (a, b, noise, _, _) in cases.values():
+        p, R, _ = _sample_paraboloids(rng, 1, 50, 0.1, noise, np.array([a]), np.array([b]))
+        pts.append(p[0])
+        Rs.append(R[0])
+    fit = fit_paraboloids(np.stack(pts), np.ones((len(pts), 50), bool),
+                          np.stack(Rs)[:, :, 2])
+    curv_ok, res_ok = patch_filters(fit.kx, fit.ky, fit.rms_euclidean, cfg)
+    for i, (name, (_, _, _, want_c, want_r)) in enumerate(cases.items()):
+        if want_c is not None:
+            assert curv_ok[i] == want_c, name
+        assert res_ok[i] == want_r, name
+    assert np.allclose(fit.kx[:4], kx[:4], atol=2.0) and np.allclose(fit.ky[:4], ky[:4], atol=2.0)
+
+
+def test_smallest_eigenvectors_match_eigh():
+    rng = np.random.default_rng(5)
+    A = rng.normal(size=(500, 3, 3))
+    C = A @ A.transpose(0, 2, 1)
+    v = smallest_eigenvectors(C)
+    w, V = np.linalg.eigh(C)
+    np.testing.assert_allclose(np.abs(np.einsum('pi,pi->p', v, V[:, :, 0])), 1.0, atol=1e-6)
+
+
+def _plane_cloud(cam, T_world_cam, height_fn, res=0.005):
+    """Organized cloud (camera frame) of the terrain z = height_fn(x, y), ray cast exactly
+    against its 5 mm height map (terrain_perception.raycast)."""
+    n = int(4.0 / res)
+    grid = GridMap(res, (-1.0, -2.0), (n, n), {})
+    xs, ys = grid.cell_centers()
+    X, Y = np.meshgrid(xs, ys, indexing='ij')
+    grid['elevation'] = height_fn(X, Y)
+    return raycast_points(grid, cam, T_world_cam)
+
+
+def _camera_pose(height=1.0, pitch_deg=45.0):
+    # optical frame: z forward, x right, y down; camera looks along +x world, pitched down.
+    R_body_opt = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
+    from terrain_perception.transforms import rot_y
+    T = np.eye(4)
+    T[:3, :3] = rot_y(np.radians(pitch_deg)) @ R_body_opt
+    T[:3, 3] = [0.0, 0.0, height]
+    return T
+
+
+def test_gravity_and_fixation_point():
+    # Camera looking level (optical z = world x): gravity is +y (down) in the optical frame.
+    T = _camera_pose(pitch_deg=0.0)
+    q_world_imu = R_to_quat(np.eye(3))
+    g = gravity_in_camera(q_world_imu, T[:3, :3])
+    np.testing.assert_allclose(g, [0, 1, 0], atol=1e-12)
+    f = fixation_point(g, PatchConfig())
+    np.testing.assert_allclose(f, [0, 1.0, 1.2], atol=1e-12)   # l_d down, l_f forward
+    with pytest.raises(ValueError, match='quaternion'):
+        gravity_in_camera([0, 0, 0, 0], np.eye(3))
+    with pytest.raises(ValueError, match='gravity'):
+        fixation_point([0, 0, 0], PatchConfig())
+
+
+def test_bilateral_filter_smooths_noise_but_keeps_a_depth_step():
+    rng = np.random.default_rng(6)
+    cam = PinholeCamera(64, 48, 50.0, 50.0, 31.5, 23.5)
+    z = np.where(np.arange(64)[None, :] < 32, 1.0, 1.3) * np.ones((48, 1))
+    noisy = z + rng.normal(0, 0.003, z.shape)
+    cloud = cam.depth_to_points(noisy.astype(np.float32))
+    cloud[10, 10] = np.nan
+    out = bilateral_filter_cloud(cloud, PatchConfig(bilateral_sigma_depth_m=0.02))
+    zf = out[..., 2]
+    assert np.isnan(zf[10, 10]) and np.isfinite(zf).sum() == z.size - 1
+    inner = np.s_[5:-5, 5:27]
+    assert np.nanstd(zf[inner] - z[inner]) < 0.6 * np.std(noisy[inner] - z[inner])
+    # No bleeding across the 0.3 m step: pixels next to it stay on their side.
+    assert np.all(np.abs(zf[5:-5, 31] - 1.0) < 0.02) and np.all(np.abs(zf[5:-5, 32] - 1.3) < 0.02)
+    # Points move along their rays: x/z and y/z are unchanged.
+    ok = np.isfinite(zf)
+    np.testing.assert_allclose((out[..., 0] / zf)[ok], (cloud[..., 0] / cloud[..., 2])[ok],
+                               atol=1e-5)
+
+
+def test_median_downsample_2x2_with_invalid_points():
+    c = np.full((4, 4, 3), np.nan, np.float32)
+    c[0, 0], c[0, 1], c[1, 0], c[1, 1] = [1, 1, 1], [2, 2, 2], [3, 3, 3], [10, 10, 10]
+    c[0, 2], c[1, 3] = [5, 5, 5], [7, 7, 7]                 # two valid -> mean
+    c[2, 0], c[2, 1], c[3, 1] = [1, 1, 1], [4, 4, 4], [9, 9, 9]   # three valid -> middle
+    out = median_downsample_2x2(c)
+    assert out.shape == (2, 2, 3)
+    np.testing.assert_allclose(out[0, 0], 2.5)
+    np.testing.assert_allclose(out[0, 1], 6.0)
+    np.testing.assert_allclose(out[1, 0], 4.0)
+    assert np.all(np.isnan(out[1, 1]))
+
+
+def test_integral_normals_and_saliency_on_a_hand_made_scene():
+    """Flat ground, a 60 deg ramp and a step: DoNG drops the ramp, DoN drops the step edge."""
+    cam = PinholeCamera(320, 240, 262.5, 262.5, 159.5, 119.5)
+    T = _camera_pose(1.0, 45.0)
+
+    def height(x, y):
+        ramp = np.where((y > 0.25) & (x > 0.8) & (x < 1.4), np.tan(np.radians(60)) *
+                        np.clip(x - 0.8, 0, 0.1), 0.0)
+        step = np.where((y < -0.1) & (x > 1.0), 0.08, 0.0)
+        return ramp + step
+
+    D = _plane_cloud(cam, T, height)
+    cfg = PatchConfig()
+    mom = IntegralMoments(D)
+    world = D.astype(np.float64) @ T[:3, :3].T + T[:3, 3]
+    g = T[:3, :3].T @ np.array([0, 0, -1.0])
+
+    def pixel_near(x, y):
+        d = np.linalg.norm(world[..., :2] - [x, y], axis=-1)
+        d[~np.isfinite(d)] = np.inf
+        return np.unravel_index(np.argmin(d), d.shape)
+
+    spots = {'flat': (1.1, 0.1), 'ramp face': (0.85, 0.35), 'step edge': (1.0, -0.25)}
+    rc = np.array([pixel_near(*xy) for xy in spots.values()])
+    N, Ns = integral_normals(D, rc[:, 0], rc[:, 1], cam.fx, cfg.patch_radius_m, mom)
+    don, dong, keep = saliency(N, Ns, g, cfg)
+    assert keep.tolist() == [True, False, False]
+    assert np.degrees(dong[0]) < 1.0 and np.degrees(don[0]) < 1.0      # flat: normal is up
+    assert np.degrees(dong[1]) > cfg.max_dong_deg                      # ramp fails DoNG
+    assert np.degrees(don[2]) > cfg.max_don_deg                        # edge fails DoN
+
+
+def test_find_patches_on_flat_ground_with_a_ramp():
+    rng = np.random.default_rng(7)
+    cam = PinholeCamera(640, 480, 525.0, 525.0, 319.5, 239.5)
+    T = _camera_pose(1.0, 45.0)
+
+    def height(x, y):   # a 60 deg ramp where the fixation area is, flat elsewhere
+        return np.where(y > 0.2, np.tan(np.radians(60)) * np.clip(x - 1.0, 0, 0.15), 0.0)
+
+    cloud = _plane_cloud(cam, T, height)
+    cloud += rng.normal(0, 0.001, cloud.shape).astype(np.float32) * cloud[..., 2:3]
+    g = T[:3, :3].T @ np.array([0, 0, -1.0])
+    cfg = PatchConfig()
+    p = find_patches(cloud, cam.fx, cam.fy, g, cfg)
+    assert len(p) >= 80 and p.counts['seeds'] == cfg.max_seeds
+    world_v = p.vertex @ T[:3, :3].T + T[:3, 3]
+    world_n = np.einsum('ij,pj->pi', T[:3, :3], p.normal)
+    # Patches lie on the floor or the ramp's plateau with their normals up, and all within R
+    # (+ r) of the fixation point. None on the 60 deg face (DoNG); a few may sit in the concave
+    # corner at its foot, which the paper's human-scale thresholds accept.
+    top = np.tan(np.radians(60)) * 0.15
+    flat = (np.abs(world_v[:, 2]) < 0.005) | (np.abs(world_v[:, 2] - top) < 0.005)
+    assert flat.mean() > 0.9
+    assert not np.any((world_v[:, 2] > 0.03) & (world_v[:, 2] < top - 0.03))
+    ang = np.degrees(np.arccos(np.clip(world_n[:, 2], -1, 1)))
+    assert np.percentile(ang[flat], 90) < 2.0 and ang.max() <= cfg.max_dong_deg + 5.0
+    assert np.all(np.linalg.norm(p.vertex - p.fixation, axis=1) < cfg.roi_radius_m
+                  + cfg.patch_radius_m)
+    np.testing.assert_allclose(p.fixation_distance, np.linalg.norm(p.vertex - p.fixation,
+                                                                   axis=1))
+    assert np.percentile(np.abs(np.r_[p.kx[flat], p.ky[flat]]), 90) < 3.0   # flat: ~0 1/m
+    assert np.all(p.residual <= cfg.max_residual_m)
+    assert np.all(np.degrees(p.dong) <= cfg.max_dong_deg)
+    # The ramp (inside R) exists in the image but no patch sits on it.
+    fix_w = T[:3, :3] @ p.fixation + T[:3, 3]
+    assert np.hypot(*(fix_w[:2] - [1.07, 0.5])) < cfg.roi_radius_m
+    assert not np.any((world_v[:, 1] > 0.2 + cfg.patch_radius_m)
+                      & (world_v[:, 0] > 1.0 + 0.02) & (world_v[:, 0] < 1.15 - 0.02))
+    # Same seed, same patches; map-frame transform keeps geometry.
+    again = find_patches(cloud, cam.fx, cam.fy, g, cfg)
+    np.testing.assert_array_equal(again.vertex, p.vertex)
+    pm = p.transformed(T)
+    np.testing.assert_allclose(pm.vertex, world_v)
+    np.testing.assert_allclose(pm.gravity, [0, 0, -1], atol=1e-12)
+    rim = pm.boundary(8)
+    assert rim.shape == (len(p), 8, 3)
+    level = flat & (ang < 2.0)
+    assert np.all(np.abs(rim[level, :, 2] - pm.vertex[level, None, 2]) < 0.005)
+    np.testing.assert_allclose(np.linalg.norm(rim[level, :, :2] - pm.vertex[level, None, :2],
+                                              axis=-1), pm.radius[level, None], rtol=0.05)
+    assert np.all((pm.radius > 0.5 * cfg.patch_radius_m) & (pm.radius <= cfg.patch_radius_m))
+
+
+def test_find_patches_bad_and_empty_input():
+    cfg = PatchConfig()
+    with pytest.raises(ValueError, match='organized'):
+        find_patches(np.zeros((100, 3), np.float32), 500, 500, [0, 1, 0], cfg)
+    with pytest.raises(ValueError, match='focal'):
+        find_patches(np.zeros((8, 8, 3), np.float32), 0.0, 500, [0, 1, 0], cfg)
+    empty = find_patches(np.full((48, 64, 3), np.nan, np.float32), 50, 50, [0, 1, 0], cfg)
+    assert len(empty) == 0 and empty.counts['dtfp'] == 0
+    # Looking at the sky (no point near the fixation point): empty, counted, no exception.
+    cam = PinholeCamera(64, 48, 50.0, 50.0, 31.5, 23.5)
+    far = cam.depth_to_points(np.full((48, 64), 30.0, np.float32))
+    res = find_patches(far, 50, 50, [0, 1, 0], dataclasses.replace(cfg))
+    assert len(res) == 0 and res.counts['seeds'] == 0
