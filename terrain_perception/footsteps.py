@@ -65,6 +65,8 @@ class PlannerConfig:
     distance_weight_gain: float = param(
         1.0, "gain on the quadratic term of Shao's omega = gain (x - centre)^2 + A "
         '(paper: 1)', 0.0, 1e4)
+    min_step_m: float = param(0.01, 'shortest step along the walking direction [m]: a plan of '
+                              'steps in place is no plan', 0.0, 1.0)
     lateral_search_m: float = param(0.03, 'half-width of each search area across the walking '
                                     'direction [m]', 0.0, 1.0)
     cost_offset: float = param(0.02, 'added to the cost before the omega weighting so that '
@@ -117,7 +119,8 @@ class FootstepPlan:
     footsteps: List[Footstep] = field(default_factory=list)
     final_body_pose: np.ndarray = field(default_factory=lambda: np.eye(4))
     body_move_per_period_m: float = 0.0
-    initial_feet: Optional[np.ndarray] = None
+    initial_feet: Optional[np.ndarray] = None   # (4, 3) contact points the plan starts from
+    yaw: float = 0.0                            # walking direction [rad, map]
 
     @property
     def ok(self) -> bool:
@@ -349,10 +352,10 @@ class FootstepPlanner:
         return np.c_[xy, np.where(np.isfinite(z), z, fallback)]
 
     def _area(self, foot_u: float, nom_u: float, nom_v: float, wL: float, A: float):
-        """Search area of one leg: along-track [foot, nominal + wL + 2A] (capped by the max step
-        length), across-track nominal +- lateral_search. Returns (u, v, centre_u) lattices."""
+        """Search area of one leg: along-track [foot + min_step, nominal + wL + 2A] (capped by the
+        max step length), across-track nominal +- lateral_search. Returns (u, v, centre_u)."""
         res = self.grid.resolution_m
-        lo = foot_u
+        lo = foot_u + self.cfg.min_step_m
         hi = min(nom_u + wL + 2.0 * A, foot_u + self.robot.max_step_length_m)
         hi = max(hi, lo)
         centre = 0.5 * (lo + hi)
@@ -477,15 +480,19 @@ class FootstepPlanner:
             self.patches = None
 
         gait, why = self.select_gait(feet, 0.0, A)
+        plan = None
         if gait == GAIT_TROT:
             plan = self._plan_trot(feet, yaw, A, remaining)
             if plan is not None:
                 plan.status_text = f'trot: {why}; ' + plan.status_text
-                return plan
-            why = 'trot footholds not reachable, walking instead'
-        plan = self._plan_walk(feet, yaw, A, remaining, first_leg)
-        if plan.ok:
-            plan.status_text = f'walk: {why}; ' + plan.status_text
+            else:
+                why = 'trot footholds not reachable, walking instead'
+        if plan is None:
+            plan = self._plan_walk(feet, yaw, A, remaining, first_leg)
+            if plan.ok:
+                plan.status_text = f'walk: {why}; ' + plan.status_text
+        plan.initial_feet = feet.copy()
+        plan.yaw = yaw
         return plan
 
     # ---- trot ------------------------------------------------------------------------------

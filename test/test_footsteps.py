@@ -1,0 +1,276 @@
+"""Receding-horizon footstep planner and Shao's gait selection (papers 000 and 002)."""
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from terrain_perception import features
+from terrain_perception import footsteps as fs
+from terrain_perception.grid import GridMap
+from terrain_perception.robot_model import load_robot_model
+
+ROBOT = load_robot_model('littledog')
+RES = 0.01
+
+
+def _grid(heights, origin=(-0.75, -0.75), cost=True):
+    g = GridMap(RES, origin, heights.shape, {'elevation': heights.astype(np.float32)})
+    if cost:
+        g['cost'] = features.cost_map(heights, RES)
+    return g
+
+
+def _flat(n=150):
+    return _grid(np.zeros((n, n)))
+
+
+def _rocks(seed, n=150, count=70, max_h=0.05):
+    """Seeded synthetic rock field: flat-topped discs and cones of up to ``max_h``."""
+    rng = np.random.default_rng(seed)
+    X, Y = np.mgrid[0:n, 0:n]
+    h = np.zeros((n, n))
+    for _ in range(count):
+        cx, cy = rng.integers(0, n, 2)
+        r = rng.integers(3, 12)
+        d = np.hypot(X - cx, Y - cy)
+        top = rng.uniform(0.01, max_h)
+        bump = np.where(d < r, top, 0.0) if rng.random() < 0.5 else np.clip(
+            top * (1 - d / r), 0, None)
+        h = np.maximum(h, bump)
+    return _grid(h)
+
+
+def _pose(x=0.0, y=0.0, yaw=0.0):
+    T = np.eye(4)
+    c, s = np.cos(yaw), np.sin(yaw)
+    T[:3, :3] = [[c, -s, 0], [s, c, 0], [0, 0, 1]]
+    T[:3, 3] = [x, y, ROBOT.standing_height_m]
+    return T
+
+
+def _check_plan_feasible(plan, cfg, robot=ROBOT):
+    """Replay the plan: every swing keeps the COG inside the other three feet's triangle by the
+    margin, and every foot (stance, lift-off and touchdown) is within reach of the body."""
+    feet = plan.initial_feet.copy()
+    for s in plan.footsteps:
+        others = [k for k in range(4) if k != s.leg]
+        margin = fs.point_in_triangle_margin(s.body_xy, feet[others, :2])
+        assert margin >= cfg.stability_margin_m - 1e-9, (s.step_index, margin)
+        T = fs.body_pose(s.body_xy, feet, plan.yaw, robot)
+        both = np.vstack([feet, s.position])
+        legs = np.r_[np.arange(4), s.leg]
+        assert np.all(fs.reachable(robot, T, both, legs, cfg.reach_fraction)), s.step_index
+        # The hip-to-foot distance check is independent of the IK: recompute it here.
+        p_base = (s.position + [0, 0, robot.foot_radius_m] - T[:3, 3]) @ T[:3, :3]
+        hip = np.array(robot.leg_plane_offsets)[s.leg]
+        assert np.linalg.norm(p_base - hip) <= cfg.reach_fraction * robot.leg_length_m + 1e-9
+        feet[s.leg] = s.position
+
+
+def test_shao_cost_on_a_hand_computed_grid():
+    h = np.zeros((5, 5))
+    h[2, 2], h[2, 3] = 0.02, 0.01
+    dev = 4 * 0.02 / np.sqrt(2) + 3 * 0.02 / 2 + 0.01 / 2          # eq. 3 at the centre cell
+    shao = features.cost_map(h, RES, features.CostConfig(method='shao'))
+    assert shao[2, 2] == pytest.approx(0.02 + dev, abs=1e-6)          # eq. 2: h + Dev(h)
+    assert fs.flatness_cost(h, 0.0)[2, 2] == pytest.approx(0.02 + dev, abs=1e-9)
+    assert fs.flatness_cost(h, 0.005)[2, 2] == pytest.approx(0.015 + dev, abs=1e-9)
+    # A dip is not flat for gait selection: |h - ground|.
+    assert fs.flatness_cost(-h, 0.0)[2, 2] == pytest.approx(0.02 + dev, abs=1e-9)
+    assert fs.flatness_cost(np.zeros((5, 5)), 0.0).max() == 0.0
+
+
+def test_cost_layer_sources():
+    g = _rocks(0)
+    np.testing.assert_array_equal(fs.cost_layer(g, 'layer'), g['cost'])
+    np.testing.assert_allclose(fs.cost_layer(g, 'shao'), features.cost_map(
+        g['elevation'], RES, features.CostConfig(method='shao')))
+    del g.layers['cost']
+    with pytest.raises(ValueError, match="no 'cost' layer"):
+        fs.cost_layer(g, 'layer')
+    with pytest.raises(ValueError, match='unknown cost source'):
+        fs.cost_layer(g, 'magic')
+
+
+def test_flat_ground_trots_with_stride_A():
+    cfg = fs.PlannerConfig()
+    plan = fs.plan_footsteps(_flat(), ROBOT, _pose(), np.array([0.6, 0.0]), cfg)
+    assert plan.ok and plan.gait == fs.GAIT_TROT, plan.status_text
+    A = ROBOT.body_move_per_period_m
+    assert plan.body_move_per_period_m == pytest.approx(A)
+    pairs = {}
+    for s in plan.footsteps:
+        pairs.setdefault(s.step_index, []).append(s.leg)
+    assert [sorted(v) for v in pairs.values()][:2] == [sorted(fs.TROT_PAIRS[0]),
+                                                       sorted(fs.TROT_PAIRS[1])]
+    first = {s.leg: s.position for s in plan.footsteps if s.step_index < 2}
+    for leg, p in first.items():
+        np.testing.assert_allclose(p[:2] - plan.initial_feet[leg, :2], [A, 0.0], atol=1e-9)
+
+
+def test_obstacle_selects_walk_in_crawl_order_and_avoids_edges():
+    h = np.zeros((150, 150))
+    g0 = _flat()
+    ij = g0.world_to_index(np.array([0.20, 0.07]))    # a 3 cm block ahead of the LF foot
+    h[ij[0] - 3:ij[0] + 4, ij[1] - 3:ij[1] + 4] = 0.03
+    g = _grid(h)
+    cfg = fs.PlannerConfig()
+    plan = fs.plan_footsteps(g, ROBOT, _pose(), np.array([0.6, 0.0]), cfg)
+    assert plan.ok and plan.gait == fs.GAIT_WALK, plan.status_text
+    assert 'obstacle' in plan.status_text
+    assert [s.leg for s in plan.footsteps] == [fs.LH, fs.LF, fs.RH, fs.RF]
+    lf = plan.footsteps[1].position
+    edge = g['cost'] > 0.1                       # the block's rim (slope / height differential)
+    assert not edge[tuple(g.world_to_index(lf[:2]))]
+    assert all(s.cost < 0.1 for s in plan.footsteps)
+    _check_plan_feasible(plan, cfg)
+
+
+def test_flat_but_feet_out_of_position_walks_with_the_stride_rule():
+    cfg = fs.PlannerConfig()
+    g = _flat()
+    planner = fs.FootstepPlanner(ROBOT, cfg)
+    assert planner.set_map(g) is None
+    A = ROBOT.body_move_per_period_m
+    feet = np.array(ROBOT.nominal_feet)
+    feet[:, 2] = 0.0
+    feet[fs.LF, 0] += 0.6 * A                     # kL - wL = 0.6 A > A / 2
+    plan = planner.plan(_pose(), np.array([0.6, 0.0]), feet=feet)
+    assert plan.ok and plan.gait == fs.GAIT_WALK, plan.status_text
+    assert 'out of position' in plan.status_text
+    # Uniform cost: omega puts each foothold at the centre of its search area
+    # [kL, wL + 2A] (capped by the max step): the paper's stride (2A + wL - kL) / 2.
+    for s in plan.footsteps:
+        u0 = feet[s.leg, 0]
+        hi = min(ROBOT.nominal_feet[s.leg][0] + 2 * A, u0 + ROBOT.max_step_length_m)
+        lo = u0 + cfg.min_step_m
+        assert s.position[0] == pytest.approx(0.5 * (lo + max(hi, lo)), abs=RES)
+        assert s.position[1] == pytest.approx(feet[s.leg, 1], abs=RES)
+    _check_plan_feasible(plan, cfg)
+
+
+@pytest.mark.parametrize('seed', [0, 1, 2, 3])
+def test_rough_terrain_plans_stay_in_reach_and_stable(seed):
+    cfg = fs.PlannerConfig(horizon_steps=8)
+    g = _rocks(seed)
+    planner = fs.FootstepPlanner(ROBOT, cfg)
+    assert planner.set_map(g) is None
+    n_ok = 0
+    for x0, yaw in ((-0.2, 0.0), (0.0, 0.3), (0.1, -0.4)):
+        plan = planner.plan(_pose(x0, 0.0, yaw))
+        if plan.status == fs.STATUS_NO_FOOTHOLD:
+            continue
+        assert plan.ok, plan.status_text
+        n_ok += 1
+        assert len(plan.footsteps) >= 1
+        _check_plan_feasible(plan, cfg)
+        cost = g['cost']
+        for s in plan.footsteps:
+            ij = g.world_to_index(s.position[:2])
+            assert s.cost == pytest.approx(float(cost[ij[0], ij[1]]))
+            assert s.position[2] == pytest.approx(float(g['elevation'][ij[0], ij[1]]))
+    assert n_ok >= 2
+
+
+def test_planner_prefers_low_cost_cells_over_the_nominal_foothold():
+    g = _flat()
+    cfg = fs.PlannerConfig(trot_threshold_m=0.0)     # never "flat": always walk and search
+    cost = np.full(g.shape, 0.5, np.float32)
+    # Cheap cells only in two bands across the path, off the nominal stride of each leg.
+    for x in (-0.08, 0.14):
+        i = g.world_to_index(np.array([x, 0.0]))[0]
+        cost[i - 1:i + 2, :] = 0.0
+    g['cost'] = cost
+    planner = fs.FootstepPlanner(ROBOT, cfg)
+    assert planner.set_map(g) is None
+    plan = planner.plan(_pose(), np.array([0.6, 0.0]))
+    assert plan.ok and plan.gait == fs.GAIT_WALK, plan.status_text
+    assert [s.cost for s in plan.footsteps] == [0.0] * 4
+    _check_plan_feasible(plan, cfg)
+
+
+def test_never_observed_cells_need_a_tight_upper_bound():
+    cfg = fs.PlannerConfig()
+    g = _rocks(5)
+    obs = np.ones(g.shape, np.float32)
+    xs, _ = g.cell_centers()
+    ahead = (xs > 0.05)[:, None] & np.ones(g.shape, bool)       # everything ahead unobserved
+    obs[ahead] = 0.0
+    g['observed'] = obs
+    g['filled'] = 1.0 - obs
+    g['upper_bound'] = np.full(g.shape, np.nan, np.float32)
+    plan = fs.plan_footsteps(g, ROBOT, _pose(), None, cfg)
+    for s in plan.footsteps:
+        assert g['observed'][tuple(g.world_to_index(s.position[:2]))] == 1.0
+    # With a line-of-sight bound 1 cm above the filled height the cells become usable.
+    g['upper_bound'] = np.where(ahead, g['elevation'] + 0.01, np.nan).astype(np.float32)
+    plan2 = fs.plan_footsteps(g, ROBOT, _pose(), None, cfg)
+    assert plan2.ok
+    assert any(g['observed'][tuple(g.world_to_index(s.position[:2]))] == 0.0
+               for s in plan2.footsteps)
+    # A loose bound (10 cm above) is not enough.
+    g['upper_bound'] = np.where(ahead, g['elevation'] + 0.10, np.nan).astype(np.float32)
+    plan3 = fs.plan_footsteps(g, ROBOT, _pose(), None, cfg)
+    for s in plan3.footsteps:
+        assert g['observed'][tuple(g.world_to_index(s.position[:2]))] == 1.0
+
+
+def test_salient_patch_attracts_the_foothold():
+    g = _flat()
+    g['elevation'][:] = 0.0
+    h = np.zeros(g.shape)
+    g0 = _grid(h)
+    ij = g0.world_to_index(np.array([0.20, 0.07]))
+    h[ij[0] - 3:ij[0] + 4, ij[1] - 3:ij[1] + 4] = 0.03     # force a walk
+    g = _grid(h)
+    cfg = fs.PlannerConfig(patch_bonus=0.9)
+    planner = fs.FootstepPlanner(ROBOT, cfg)
+    assert planner.set_map(g) is None
+    base = planner.plan(_pose(), np.array([0.6, 0.0]))
+    lh = base.footsteps[0]
+    assert lh.leg == fs.LH and lh.patch_index == -1
+    target = lh.position + [-0.02, 0.0, 0.0]                # a patch 2 cm behind that choice
+    patches = (np.array([[5.0, 5.0, 0.0], target]), np.array([0.01, 0.006]))
+    with_patch = planner.plan(_pose(), np.array([0.6, 0.0]), patches=patches)
+    s0 = with_patch.footsteps[0]
+    assert s0.patch_index == 1
+    assert np.hypot(*(s0.position[:2] - target[:2])) <= 0.006 + 1e-9
+
+
+def test_bad_inputs_give_an_explanatory_empty_plan():
+    cfg = fs.PlannerConfig()
+    planner = fs.FootstepPlanner(ROBOT, cfg)
+    cases = []
+    p = planner.set_map(None)
+    cases.append((p, fs.STATUS_NO_MAP))
+    cases.append((planner.plan(_pose()), fs.STATUS_NO_MAP))
+    empty = _grid(np.full((50, 50), np.nan), cost=False)
+    empty['cost'] = np.full((50, 50), np.nan, np.float32)
+    cases.append((planner.set_map(empty), fs.STATUS_BAD_MAP))
+    nocost = _grid(np.zeros((50, 50)), cost=False)
+    cases.append((planner.set_map(nocost), fs.STATUS_BAD_MAP))
+    assert 'cost' in cases[-1][0].status_text
+    g = _flat()
+    assert planner.set_map(g) is None
+    cases.append((planner.plan(_pose(5.0, 0.0)), fs.STATUS_ROBOT_OUTSIDE_MAP))
+    cases.append((planner.plan(_pose(), np.array([3.0, 0.0])), fs.STATUS_BAD_INPUT))
+    assert 'outside the map' in cases[-1][0].status_text
+    cases.append((planner.plan(_pose(), np.array([np.nan, 0.0])), fs.STATUS_BAD_INPUT))
+    bad_T = _pose()
+    bad_T[0, 3] = np.nan
+    cases.append((planner.plan(bad_T), fs.STATUS_BAD_INPUT))
+    cases.append((planner.plan(_pose(), np.array([0.01, 0.0])), fs.STATUS_GOAL_REACHED))
+    cases.append((planner.plan(_pose(), feet=np.zeros((3, 3))), fs.STATUS_BAD_INPUT))
+    # Nowhere to step: only the cells under the current feet are known.
+    h = np.full((150, 150), np.nan)
+    for f in planner._nominal_feet(_pose()):
+        i, j = g.world_to_index(f[:2])
+        h[i, j] = 0.0
+    island = _grid(h)
+    assert planner.set_map(island) is None
+    cases.append((planner.plan(_pose()), fs.STATUS_NO_FOOTHOLD))
+    assert 'LH' in cases[-1][0].status_text
+    for plan, status in cases:
+        assert plan.status == status, plan.status_text
+        assert plan.footsteps == [] and plan.status_text
