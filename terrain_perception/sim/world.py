@@ -247,10 +247,11 @@ class SimWorld:
         centres like the heightfield's triangles on axis-aligned samples; 0 off the course."""
         xy = np.asarray(xy, dtype=np.float64)
         g = self.course
-        f = (xy - np.asarray(g.origin_xy)) / g.resolution_m - 0.5
+        f = (xy.reshape(-1, 2) - np.asarray(g.origin_xy)) / g.resolution_m - 0.5
         from scipy.ndimage import map_coordinates
-        return map_coordinates(g[ELEVATION].astype(np.float64), [f[..., 0], f[..., 1]],
-                               order=1, mode='constant', cval=0.0)
+        out = map_coordinates(g[ELEVATION].astype(np.float64), [f[:, 0], f[:, 1]], order=1,
+                              mode='constant', cval=0.0)
+        return out.reshape(xy.shape[:-1])
 
     def ray_heights(self, xy: np.ndarray, z_top: float = 10.0, z_bottom: float = -10.0
                     ) -> np.ndarray:
