@@ -98,6 +98,11 @@ class BoundsConfig:
         0.05, 1.0)
     margin_m: float = param(
         0.0, 'added to every bound [m]; > 0 tolerates noisy points or poses', 0.0, 1.0)
+    center_radius_cells: float = param(
+        0.5, 'a ray sample bounds a cell only within this Chebyshev distance of the cell '
+        'centre [cells]; 0.5 = anywhere over the cell (flat-topped cells). On a surface '
+        'interpolated between cell centres, a ray over a cell corner does not bound the centre '
+        'height: a smaller radius (with a smaller step) keeps the bound valid', 0.01, 0.5)
     chunk_samples: int = param(
         4_000_000, 'ray samples processed per block (memory bound)', 1000, 10 ** 9)
 
@@ -165,9 +170,31 @@ def check_bounds(heights: np.ndarray, upper_bound: Optional[np.ndarray],
 # --------------------------------------------------------------------------------------------
 # line-of-sight bounds
 # --------------------------------------------------------------------------------------------
+def _ray_samples(a, p, za, zp, t0, t1, full_len, step, nx, ny, chunk):
+    """Yield (ray index, t, cell index (k, 2), z) for samples every ``step`` cells along each
+    ray's x-y footprint between parameters t0 and t1 (both ends included), in memory chunks."""
+    nsamp = np.maximum(np.ceil(full_len * (t1 - t0) / step).astype(np.int64), 1) + 1
+    cums = np.cumsum(nsamp)
+    start = 0
+    while start < len(nsamp):
+        base = cums[start - 1] if start else 0
+        stop = max(int(np.searchsorted(cums, base + chunk, side='right')), start + 1)
+        ns = nsamp[start:stop]
+        rays = np.repeat(np.arange(start, stop), ns)
+        first = np.repeat(np.cumsum(ns) - ns, ns)
+        frac = (np.arange(rays.size) - first) / (nsamp[rays] - 1).astype(np.float64)
+        t = t0[rays] + (t1[rays] - t0[rays]) * frac
+        xy = a[rays] + t[:, None] * (p[rays] - a[rays])
+        z = za[rays] + t * (zp[rays] - za[rays])
+        yield rays, t, np.floor(xy).astype(np.int64), z
+        start = stop
+
+
 def line_of_sight_bounds(shape: Tuple[int, int], resolution_m: float, origin_xy: Sequence[float],
                          origins: np.ndarray, points: np.ndarray,
-                         config: BoundsConfig = BoundsConfig()) -> np.ndarray:
+                         config: BoundsConfig = BoundsConfig(),
+                         target: Optional[np.ndarray] = None,
+                         ceiling_m: Optional[float] = None) -> np.ndarray:
     """Upper bounds H-bar [m] from rays camera -> observed point (paper 000, sec. III, Fig. 5).
 
     Args:
@@ -177,7 +204,11 @@ def line_of_sight_bounds(shape: Tuple[int, int], resolution_m: float, origin_xy:
         origins: (N, 3) or (3,) camera positions [m] in the grid frame, one per ray or one for
             all.
         points: (N, 3) observed surface points [m] in the grid frame (NaN rows are skipped).
-        config: sampling step, safety margin, memory chunk.
+        config: sampling step, centre radius, safety margin, memory chunk.
+        target: optional (nx, ny) bool: only these cells get bounds (the unobserved ones, say);
+            the rest are NaN. Saves the reduction work, not the rasterisation.
+        ceiling_m: optional height [m]: the part of each ray above it is skipped (a bound
+            that high constrains nothing); cells crossed only there get no bound.
 
     Returns:
         (nx, ny) float64 bound [m]; NaN where no ray passed over the cell.
@@ -190,37 +221,60 @@ def line_of_sight_bounds(shape: Tuple[int, int], resolution_m: float, origin_xy:
     org = org.reshape(-1, 3)
     if org.shape != pts.shape:
         raise ValueError(f'origins {org.shape} and points {pts.shape} do not pair up')
+    if target is not None and np.shape(target) != (nx, ny):
+        raise ValueError(f'target mask has shape {np.shape(target)}, the grid is {(nx, ny)}')
     ok = np.isfinite(pts).all(1) & np.isfinite(org).all(1)
     pts, org = pts[ok], org[ok]
     bound = np.full(nx * ny, np.inf)
+    tgt = None if target is None else np.asarray(target, bool).ravel()
     if len(pts) == 0:
         return np.full((nx, ny), np.nan)
     o_xy = np.asarray(origin_xy, dtype=np.float64)
     # continuous cell coordinates: cell [i, j] spans [i, i+1) x [j, j+1)
     a = (org[:, :2] - o_xy) / resolution_m
     p = (pts[:, :2] - o_xy) / resolution_m
-    length = np.linalg.norm(p - a, axis=1)
-    nsamp = np.maximum(np.ceil(length / config.step_cells).astype(np.int64), 1) + 1
+    za, zp = org[:, 2], pts[:, 2]
+    t0 = np.zeros(len(pts))
+    if ceiling_m is not None:
+        dz = za - zp
+        with np.errstate(divide='ignore', invalid='ignore'):
+            t0 = np.where(dz > 0, np.clip((za - ceiling_m) / dz, 0.0, 1.0), 0.0)
+    t1 = np.ones(len(pts))
+    full_len = np.linalg.norm(p - a, axis=1)
+    if tgt is not None:
+        # coarse pass (1-cell steps) over the target grown by 2 cells: keep only the stretch
+        # of each ray that can reach a target cell
+        from scipy import ndimage
+        near = ndimage.binary_dilation(tgt.reshape(nx, ny), np.ones((5, 5), bool)).ravel()
+        lo, hi = np.full(len(pts), np.inf), np.full(len(pts), -np.inf)
+        for rays, t, ij, _ in _ray_samples(a, p, za, zp, t0, t1, full_len, 1.0, nx, ny,
+                                            config.chunk_samples):
+            inside = (ij[:, 0] >= 0) & (ij[:, 0] < nx) & (ij[:, 1] >= 0) & (ij[:, 1] < ny)
+            hit = np.zeros(len(t), bool)
+            hit[inside] = near[ij[inside, 0] * ny + ij[inside, 1]]
+            np.minimum.at(lo, rays[hit], t[hit])
+            np.maximum.at(hi, rays[hit], t[hit])
+        pad = 2.0 / np.maximum(full_len, 1e-9)          # two cells of slack either side
+        use = np.isfinite(lo)
+        t0 = np.where(use, np.maximum(t0, lo - pad), t0)
+        t1 = np.where(use, np.minimum(1.0, hi + pad), t1)
+        keep_rays = use & (t1 > t0)
+        a, p, za, zp, t0, t1, full_len = (v[keep_rays] for v in (a, p, za, zp, t0, t1,
+                                                                   full_len))
     end_cell = np.floor(p).astype(np.int64)
-    start = 0
-    cums = np.cumsum(nsamp)
-    while start < len(pts):
-        # rays [start, stop) hold at most chunk_samples samples (at least one ray)
-        base = cums[start - 1] if start else 0
-        stop = int(np.searchsorted(cums, base + config.chunk_samples, side='right'))
-        stop = max(stop, start + 1)
-        ns = nsamp[start:stop]
-        ray = np.repeat(np.arange(start, stop), ns)
-        first = np.repeat(np.cumsum(ns) - ns, ns)
-        t = (np.arange(ray.size) - first) / (nsamp[ray] - 1).astype(np.float64)
-        xy = a[ray] + t[:, None] * (p[ray] - a[ray])
-        z = org[ray, 2] + t * (pts[ray, 2] - org[ray, 2])
-        ij = np.floor(xy).astype(np.int64)
+    for rays, t, ij, z in _ray_samples(a, p, za, zp, t0, t1, full_len, config.step_cells, nx,
+                                        ny, config.chunk_samples):
         keep = ((ij[:, 0] >= 0) & (ij[:, 0] < nx) & (ij[:, 1] >= 0) & (ij[:, 1] < ny)
-                & ~((ij[:, 0] == end_cell[ray, 0]) & (ij[:, 1] == end_cell[ray, 1])))
+                & ~((ij[:, 0] == end_cell[rays, 0]) & (ij[:, 1] == end_cell[rays, 1])))
+        if config.center_radius_cells < 0.5:
+            xy = a[rays] + t[:, None] * (p[rays] - a[rays])
+            keep &= (np.abs(xy - ij - 0.5) <= config.center_radius_cells).all(1)
         flat = ij[keep, 0] * ny + ij[keep, 1]
-        np.minimum.at(bound, flat, z[keep])
-        start = stop
+        zk = z[keep]
+        if tgt is not None:
+            sel = tgt[flat]
+            flat, zk = flat[sel], zk[sel]
+        np.minimum.at(bound, flat, zk)
     bound = bound.reshape(nx, ny) + config.margin_m
     return np.where(np.isfinite(bound), bound, np.nan)
 
@@ -612,3 +666,201 @@ def fill(heights: np.ndarray, upper_bound: Optional[np.ndarray] = None,
         check_bounds(H, upper_bound)
         return FillResult(H, np.zeros(H.shape, bool))
     raise ValueError(f'unknown fill method {method!r}; use one of {FILL_METHODS}')
+
+
+# --------------------------------------------------------------------------------------------
+# incremental filling of a changing map (what terrain_fill_node runs)
+# --------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class RayConfig:
+    """How :class:`TerrainFiller` reconstructs lines of sight from capture positions."""
+
+    max_range_m: float = param(1.0, 'farthest observed cell paired with a capture position '
+                               '[m] (the range the camera measures)', 0.05, 100.0)
+    tol_m: float = param(0.002, 'a candidate ray may pass this far below an observed cell '
+                         'and still count as a line of sight [m] (map noise)', 0.0, 1.0)
+    stride_cells: int = param(2, 'observed cells used as ray ends: every stride-th in each '
+                              'axis, plus all cells on the edge of an unobserved region', 1, 64)
+
+
+class TerrainFiller:
+    """Keeps a filled copy of a changing height map and refills only what a change touches.
+
+    ``update(grid, camera_positions)`` returns a new :class:`~terrain_perception.grid.GridMap`
+    with layers ``elevation`` (observed heights + filled ones), ``observed`` (1 = measured;
+    never set by filling), ``upper_bound`` (line-of-sight bound, NaN = none), ``filled``
+    (1 = synthesised) and ``cost`` (:func:`terrain_perception.features.cost_map`).
+
+    Observed cells are those with ``observed == 1`` when the input has that layer, else those
+    with a finite elevation. Bounds are the minimum of the input's ``upper_bound`` layer (if
+    any) and those reconstructed from ``camera_positions`` (:func:`rays_from_captures`).
+
+    Incremental rule: cells whose observed height or bound changed (or that are new after the
+    grid moved by whole cells) mark the holes (8-connected unobserved regions) within one
+    window of them for refilling; the other holes keep their previous fill and act as known
+    context. The cost is recomputed on the bounding box of every changed height plus the
+    cost windows' reach. ``last_region`` is that box ``(i0, i1, j0, j1)`` or None.
+
+    Any ValueError leaves the previous state untouched.
+    """
+
+    def __init__(self, library: Sequence[np.ndarray], library_resolution_m: float,
+                 fill_config: FillConfig = FillConfig(), cost_config=None,
+                 bounds_config: BoundsConfig = BoundsConfig(),
+                 ray_config: RayConfig = RayConfig()) -> None:
+        from terrain_perception.features import CostConfig
+        self.fill_config = fill_config
+        self.cost_config = cost_config if cost_config is not None else CostConfig()
+        self.bounds_config = bounds_config
+        self.ray_config = ray_config
+        if not np.isfinite(library_resolution_m) or library_resolution_m <= 0:
+            raise ValueError(f'library resolution must be positive, got {library_resolution_m}')
+        self.library_resolution_m = float(library_resolution_m)
+        self.library = PatchLibrary(library, fill_config.window_cells)
+        self._prev = None
+        self.last_region: Optional[Tuple[int, int, int, int]] = None
+        self.last_refilled = 0
+
+    # -- inputs ----------------------------------------------------------------------------
+    @staticmethod
+    def observed_heights(grid) -> np.ndarray:
+        """float64 heights of the observed cells, NaN elsewhere; ValueError on bad values."""
+        from terrain_perception.grid import ELEVATION, OBSERVED
+        if ELEVATION not in grid:
+            raise ValueError(f'the grid has no {ELEVATION!r} layer (layers: '
+                             f'{sorted(grid.layers)})')
+        elev = np.asarray(grid[ELEVATION], np.float64)
+        if OBSERVED in grid:
+            obs = np.asarray(grid[OBSERVED])
+            if not np.isin(obs[np.isfinite(obs)], (0.0, 1.0)).all() or np.isnan(obs).any():
+                raise ValueError(f'the {OBSERVED!r} layer must hold only 0 and 1')
+            mask = obs == 1.0
+            bad = mask & ~np.isfinite(elev)
+            if bad.any():
+                i, j = np.argwhere(bad)[0]
+                raise ValueError(f'{int(bad.sum())} cells marked observed have a NaN/inf '
+                                 f'elevation (e.g. cell [{i}, {j}])')
+        else:
+            if np.isinf(elev).any():
+                raise ValueError(f'elevation is +-inf in {int(np.isinf(elev).sum())} cells')
+            mask = np.isfinite(elev)
+        if not mask.any():
+            raise ValueError('every cell is unknown: nothing observed to fill from')
+        return np.where(mask, elev, np.nan)
+
+    def bounds(self, grid, heights: np.ndarray, camera_positions: np.ndarray) -> np.ndarray:
+        """Line-of-sight bounds [m] of the unobserved cells (NaN = none), checked."""
+        from terrain_perception.grid import UPPER_BOUND
+        unobserved = ~np.isfinite(heights)
+        ub = np.full(heights.shape, np.nan)
+        cams = np.asarray(camera_positions, np.float64).reshape(-1, 3)
+        if len(cams):
+            rc = self.ray_config
+            o, p = rays_from_captures(heights, grid.resolution_m, grid.origin_xy, cams,
+                                      rc.max_range_m, rc.tol_m, rc.stride_cells,
+                                      self.bounds_config.step_cells)
+            if len(p):
+                ub = line_of_sight_bounds(heights.shape, grid.resolution_m, grid.origin_xy, o,
+                                          p, self.bounds_config, target=unobserved)
+        if UPPER_BOUND in grid:
+            given = np.asarray(grid[UPPER_BOUND], np.float64)
+            check_bounds(heights, given)           # refuses bounds below observed heights
+            ub = np.fmin(ub, np.where(np.isinf(given), np.nan, given))
+        return np.where(unobserved, ub, np.nan)
+
+    # -- the update ------------------------------------------------------------------------
+    def _aligned_prev(self, grid):
+        """Previous arrays moved onto the new grid (NaN where new), or None."""
+        prev = self._prev
+        if prev is None or abs(prev['res'] - grid.resolution_m) > 1e-9:
+            return None
+        off = (np.asarray(grid.origin_xy) - np.asarray(prev['origin'])) / grid.resolution_m
+        off_i = np.round(off).astype(int)
+        if np.any(np.abs(off - off_i) > 1e-6):
+            return None
+        nx, ny = grid.shape
+        out = {}
+        for k in ('obs', 'ub', 'elev', 'cost', 'filled'):
+            src = prev[k]
+            dst = np.full((nx, ny), np.nan)
+            i0, j0 = max(off_i[0], 0), max(off_i[1], 0)
+            i1 = min(off_i[0] + nx, src.shape[0])
+            j1 = min(off_i[1] + ny, src.shape[1])
+            if i1 > i0 and j1 > j0:
+                dst[i0 - off_i[0]:i1 - off_i[0], j0 - off_i[1]:j1 - off_i[1]] = src[i0:i1, j0:j1]
+            out[k] = dst
+        out['new'] = np.isnan(out['elev'])
+        return out
+
+    def update(self, grid, camera_positions: np.ndarray = np.zeros((0, 3))):
+        """Fill ``grid`` (a GridMap) and return the output GridMap (see class docstring)."""
+        from terrain_perception.features import cost_map, window_cells
+        from terrain_perception.grid import (COST, ELEVATION, FILLED, OBSERVED, UPPER_BOUND,
+                                             GridMap)
+        if abs(grid.resolution_m - self.library_resolution_m) > 1e-9:
+            raise ValueError(f'the grid has {grid.resolution_m:g} m cells but the terrain '
+                             f'library {self.library_resolution_m:g} m; they must match')
+        heights = self.observed_heights(grid)
+        ub = self.bounds(grid, heights, camera_positions)
+        observed = np.isfinite(heights)
+        w = self.fill_config.window_cells
+        prev = self._aligned_prev(grid)
+        same = lambda a, b: (a == b) | (np.isnan(a) & np.isnan(b))  # noqa: E731
+        if prev is None:
+            changed = np.ones(grid.shape, bool)
+        else:
+            changed = ~same(heights, prev['obs']) | ~same(ub, prev['ub']) | prev['new']
+        # holes to refill: unobserved components within one window of a change
+        near = ndimage.binary_dilation(changed, np.ones((w, w), bool)) if changed.any() \
+            else changed
+        labels, _ = ndimage.label(~observed, np.ones((3, 3), bool))
+        hit = np.unique(labels[near & ~observed])
+        refill = np.isin(labels, hit[hit > 0])
+        elev = np.where(observed, heights, np.nan)
+        if prev is not None:
+            keep = ~observed & ~refill
+            elev[keep] = prev['elev'][keep]
+        filled_mask = ~observed
+        self.last_refilled = int(refill.sum())
+        if refill.any():
+            ii, jj = np.nonzero(refill)
+            i0, i1 = max(ii.min() - w, 0), min(ii.max() + w + 1, grid.shape[0])
+            j0, j1 = max(jj.min() - w, 0), min(jj.max() + w + 1, grid.shape[1])
+            crop = elev[i0:i1, j0:j1].copy()
+            crop[refill[i0:i1, j0:j1]] = np.nan
+            if not np.isfinite(crop).any():
+                crop = elev.copy()
+                crop[refill] = np.nan
+                i0, i1, j0, j1 = 0, grid.shape[0], 0, grid.shape[1]
+            res = fill_terrain(crop, ub[i0:i1, j0:j1], self.library, self.fill_config)
+            region = refill[i0:i1, j0:j1]
+            elev[i0:i1, j0:j1][region] = res.heights[region]
+        # cost: recompute where heights changed, plus the reach of the cost windows
+        cc = self.cost_config
+        reach = max(window_cells(cc.foot_window_m, grid.resolution_m),
+                    window_cells(cc.leg_window_m, grid.resolution_m)) // 2 + 1
+        if prev is None:
+            cost = cost_map(elev, grid.resolution_m, cc).astype(np.float64)
+            self.last_region = (0, grid.shape[0], 0, grid.shape[1])
+        else:
+            cost = prev['cost'].copy()
+            moved = ~same(elev, prev['elev'])
+            if moved.any():
+                ii, jj = np.nonzero(moved)
+                r0, r1 = max(ii.min() - reach, 0), min(ii.max() + reach + 1, grid.shape[0])
+                s0, s1 = max(jj.min() - reach, 0), min(jj.max() + reach + 1, grid.shape[1])
+                c0, c1 = max(r0 - reach, 0), min(r1 + reach, grid.shape[0])
+                d0, d1 = max(s0 - reach, 0), min(s1 + reach, grid.shape[1])
+                sub = cost_map(elev[c0:c1, d0:d1], grid.resolution_m, cc)
+                cost[r0:r1, s0:s1] = sub[r0 - c0:r1 - c0, s0 - d0:s1 - d0]
+                self.last_region = (int(r0), int(r1), int(s0), int(s1))
+            else:
+                self.last_region = None
+        out = GridMap(grid.resolution_m, grid.origin_xy, grid.shape, {
+            ELEVATION: elev, OBSERVED: observed.astype(np.float32), UPPER_BOUND: ub,
+            FILLED: filled_mask.astype(np.float32), COST: cost},
+            frame_id=grid.frame_id, stamp_s=grid.stamp_s)
+        self._prev = {'res': grid.resolution_m, 'origin': grid.origin_xy, 'obs': heights,
+                      'ub': ub, 'elev': elev, 'cost': cost,
+                      'filled': filled_mask.astype(np.float64)}
+        return out
