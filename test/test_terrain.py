@@ -122,3 +122,20 @@ def test_kolter_tile_sets_are_disjoint_and_square():
     again = T.library_terrains(2, 11, resolution_m=0.02, kolter=FAST_KOLTER)
     np.testing.assert_array_equal(again[1][ELEVATION], lib[1][ELEVATION])
     assert dataclasses.asdict(FAST_KOLTER)['bodies_per_m2'] == 40.0
+
+
+def test_cli_writes_the_course_and_a_preview(tmp_path, capsys):
+    from terrain_perception.terrain_cli import main
+    out, png = tmp_path / 'course.npz', tmp_path / 'preview.png'
+    assert main(['--class', 'stones-15cm', '--seed', '3', '-o', str(out), '--png', str(png),
+                 '--resolution', '0.01']) == 0
+    grid = GridMap.load(out)
+    np.testing.assert_array_equal(grid[ELEVATION],
+                                  T.make_course('stones-15cm', 3, 0.01)[ELEVATION])
+    import cv2
+    img = cv2.imread(str(png))
+    assert img.shape == (grid.shape[1], grid.shape[0], 3)
+    assert 'stones-15cm seed 3' in capsys.readouterr().out
+    assert main(['--class', 'stones-15cm', '--seed', '3', '-o', str(out),
+                 '--resolution', '-1']) == 2
+    assert 'resolution' in capsys.readouterr().err
