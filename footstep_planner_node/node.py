@@ -300,8 +300,7 @@ class FootstepPlannerNode(Node):
     def _publish_plan(self, plan: fs.FootstepPlan, frame: str, stamp) -> None:
         self.last_plan = plan
         if plan.status not in (fs.STATUS_OK, fs.STATUS_GOAL_REACHED):
-            self.counters.bump(f'plan_status_{plan.status}', plan.status_text,
-                               self.get_logger().info)
+            self.counters.bump(f'plan_status_{plan.status}', plan.status_text)
         self.pub_plan.publish(plan_to_msg(plan, frame, stamp))
         if self.pub_plan_markers.get_subscription_count() > 0:
             self.pub_plan_markers.publish(self._plan_markers(plan, frame, stamp))

@@ -1,0 +1,214 @@
+"""footstep_planner node in process: maps, pose and goal in -> plans out (content checked against
+the core planner); cloud + IMU -> contact patches on the true ground; every bad input gives an
+explanatory empty plan and the node keeps running."""
+
+import numpy as np
+import pytest
+from geometry_msgs.msg import PoseStamped
+from nav_msgs.msg import OccupancyGrid
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from sensor_msgs.msg import Imu, PointCloud2
+from terrain_msgs.msg import ContactPatchArray, FootstepPlan, TerrainGrid
+
+from conftest import spin_until
+from footstep_planner_node.node import FootstepPlannerNode
+from terrain_perception import features
+from terrain_perception import footsteps as fs
+from terrain_perception.camera import PinholeCamera
+from terrain_perception.grid import GridMap
+from terrain_perception.raycast import raycast_points
+from terrain_perception.robot_model import load_robot_model
+from terrain_perception.transforms import R_to_quat
+from terrain_ros.conversions import grid_to_msg, matrix_to_pose, xyz_to_cloud
+from terrain_ros.qos import LATCHED_QOS, RELIABLE_QOS, SENSOR_QOS
+
+ROBOT = load_robot_model('littledog')
+QUADRUPED_PATCHES = {'patches.fixation_down_m': 0.195, 'patches.fixation_forward_m': 0.16,
+                     'patches.roi_radius_m': 0.15, 'patches.patch_radius_m': 0.02,
+                     'patches.kappa_min_per_m': -68.0, 'patches.kappa_max_per_m': 98.5,
+                     'patches.max_residual_m': 0.002, 'patches.bilateral_sigma_depth_m': 0.01}
+
+
+def _grid(h, stamp=1.0, cost=True):
+    g = GridMap(0.01, (-0.75, -0.75), h.shape, {'elevation': h.astype(np.float32)},
+                stamp_s=stamp)
+    if cost:
+        g['cost'] = features.cost_map(h, 0.01)
+    return g
+
+
+def _pose_T(x=0.0, y=0.0):
+    T = np.eye(4)
+    T[:3, 3] = [x, y, ROBOT.standing_height_m]
+    return T
+
+
+class Harness:
+    def __init__(self, ctx, executor, **params):
+        overrides = [Parameter(k, value=v) for k, v in params.items()]
+        self.node = FootstepPlannerNode(context=ctx, parameter_overrides=overrides)
+        self.io = Node('planner_test_io', context=ctx)
+        self.ex = executor
+        executor.add_node(self.node)
+        executor.add_node(self.io)
+        self.plans, self.patches, self.costs = [], [], []
+        self.pub_map = self.io.create_publisher(TerrainGrid, '/map/filled', LATCHED_QOS)
+        self.pub_pose = self.io.create_publisher(PoseStamped, '/icp/pose', RELIABLE_QOS)
+        self.pub_goal = self.io.create_publisher(PoseStamped, '/goal_pose', RELIABLE_QOS)
+        self.pub_cloud = self.io.create_publisher(PointCloud2, '/stereo/points', SENSOR_QOS)
+        self.pub_imu = self.io.create_publisher(Imu, '/imu/data', SENSOR_QOS)
+        self.io.create_subscription(FootstepPlan, '/footstep_plan', self.plans.append,
+                                    LATCHED_QOS)
+        self.io.create_subscription(ContactPatchArray, '/contact_patches', self.patches.append,
+                                    RELIABLE_QOS)
+        self.io.create_subscription(OccupancyGrid, '/map/cost_grid', self.costs.append,
+                                    LATCHED_QOS)
+        assert spin_until(executor, lambda: self.node.count_publishers('/map/filled') > 0
+                          and self.pub_pose.get_subscription_count() > 0
+                          and self.node.pub_plan.get_subscription_count() > 0, 5.0)
+
+    def pose(self, T):
+        m = PoseStamped()
+        m.header.frame_id = 'map'
+        m.pose = matrix_to_pose(T)
+        n = len(self.node.counters.counts)
+        self.pub_pose.publish(m)
+        assert spin_until(self.ex, lambda: self.node.T_map_base is not None
+                          and np.allclose(self.node.T_map_base, T)
+                          or len(self.node.counters.counts) > n, 5.0)
+
+    def send_map(self, msg, sec=None):
+        """Publish a map and return the plan made on it (maps in a test carry unique stamps)."""
+        self._stamp = getattr(self, '_stamp', 0) + 1
+        sec = 1000 + self._stamp if sec is None else sec
+        msg.header.stamp.sec = sec
+        k = len(self.plans)
+        self.pub_map.publish(msg)
+        assert spin_until(self.ex, lambda: any(p.header.stamp.sec == sec
+                                               for p in self.plans[k:]), 5.0)
+        return [p for p in self.plans[k:] if p.header.stamp.sec == sec][-1]
+
+
+def test_map_pose_goal_give_the_core_plan_and_a_cost_grid(ros_context, executor):
+    h = Harness(ros_context, executor)
+    h.pose(_pose_T())
+    flat = _grid(np.zeros((150, 150)))
+    plan = h.send_map(grid_to_msg(flat))
+    assert plan.status == FootstepPlan.STATUS_OK, plan.status_text
+    assert plan.gait_mode == FootstepPlan.GAIT_TROT and plan.header.frame_id == 'map'
+    assert plan.body_move_per_period == pytest.approx(ROBOT.body_move_per_period_m)
+    want = fs.plan_footsteps(flat, ROBOT, _pose_T())
+    got = np.array([[f.position.x, f.position.y, f.position.z] for f in plan.footsteps])
+    np.testing.assert_allclose(got, [s.position for s in want.footsteps], atol=1e-6)
+    assert [f.leg for f in plan.footsteps] == [s.leg for s in want.footsteps]
+    assert spin_until(executor, lambda: len(h.costs) > 0, 5.0)
+    cg = h.costs[-1]
+    assert (cg.info.width, cg.info.height) == (150, 150) and set(cg.data) == {0}
+    # An obstacle ahead: walk, footholds off the obstacle's rim, goal honoured.
+    hh = np.zeros((150, 150))
+    hh[88:102, 75:90] = 0.03
+    rough = _grid(hh, stamp=2.0)
+    goal = PoseStamped()
+    goal.header.frame_id = 'map'
+    goal.pose.position.x, goal.pose.position.y = 0.5, 0.1
+    h.pub_goal.publish(goal)
+    assert spin_until(executor, lambda: h.node.goal_xy is not None, 5.0)
+    plan = h.send_map(grid_to_msg(rough))
+    assert plan.status == FootstepPlan.STATUS_OK and plan.gait_mode == FootstepPlan.GAIT_WALK
+    want = fs.plan_footsteps(rough, ROBOT, _pose_T(), np.array([0.5, 0.1]))
+    got = np.array([[f.position.x, f.position.y, f.position.z] for f in plan.footsteps])
+    np.testing.assert_allclose(got, [s.position for s in want.footsteps], atol=1e-6)
+    assert [f.leg for f in plan.footsteps] == [fs.LH, fs.LF, fs.RH, fs.RF]
+    assert all(f.cost < 0.1 for f in plan.footsteps)
+    assert spin_until(executor, lambda: len(h.costs) > 1, 5.0)
+    assert max(h.costs[-1].data) == 100
+
+
+def test_bad_inputs_give_explanatory_empty_plans(ros_context, executor):
+    h = Harness(ros_context, executor)
+    flat = _grid(np.zeros((150, 150)))
+    plan = h.send_map(grid_to_msg(flat))                    # no pose yet
+    assert plan.status == FootstepPlan.STATUS_BAD_INPUT and 'pose' in plan.status_text
+    h.pose(_pose_T())
+    nocost = _grid(np.zeros((150, 150)), cost=False)
+    plan = h.send_map(grid_to_msg(nocost))
+    assert plan.status == FootstepPlan.STATUS_BAD_MAP and "'cost'" in plan.status_text
+    empty = _grid(np.full((150, 150), np.nan), cost=False)
+    empty['cost'] = np.full((150, 150), np.nan, np.float32)
+    plan = h.send_map(grid_to_msg(empty))
+    assert plan.status == FootstepPlan.STATUS_BAD_MAP and 'empty' in plan.status_text
+    broken = grid_to_msg(flat)
+    broken.data[0].data = broken.data[0].data[:10]          # wrong size: malformed message
+    plan = h.send_map(broken)
+    assert plan.status == FootstepPlan.STATUS_BAD_MAP and 'values' in plan.status_text
+    h.pose(_pose_T(3.0, 0.0))                               # robot off the map
+    plan = h.send_map(grid_to_msg(flat))
+    assert plan.status == FootstepPlan.STATUS_ROBOT_OUTSIDE_MAP
+    h.pose(_pose_T())
+    goal = PoseStamped()
+    goal.pose.position.x = 5.0                              # goal off the map: unreachable
+    h.pub_goal.publish(goal)
+    assert spin_until(executor, lambda: h.node.goal_xy is not None, 5.0)
+    assert spin_until(executor, lambda: 'cannot be reached' in h.plans[-1].status_text, 5.0)
+    assert h.plans[-1].status == FootstepPlan.STATUS_BAD_INPUT
+    island = np.full((150, 150), np.nan)
+    island[0:10, 0:10] = 0.0                 # known only in a corner no leg reaches: stuck
+    h.node.goal_xy = None
+    plan = h.send_map(grid_to_msg(_grid(island)))
+    assert plan.status == FootstepPlan.STATUS_NO_FOOTHOLD and plan.status_text
+    bad_pose = PoseStamped()
+    bad_pose.pose.orientation.w = 0.0                       # zero quaternion: refused, counted
+    h.pub_pose.publish(bad_pose)
+    assert spin_until(executor, lambda: h.node.counters['bad_pose'] == 1, 5.0)
+    for p in h.plans:
+        if p.status != FootstepPlan.STATUS_OK:
+            assert len(p.footsteps) == 0 and p.status_text
+    assert h.node.counters['bad_map'] >= 3
+    # Still alive and planning.
+    plan = h.send_map(grid_to_msg(flat))
+    assert plan.status == FootstepPlan.STATUS_OK
+
+
+def test_cloud_and_imu_give_contact_patches_on_the_ground(ros_context, executor):
+    params = dict(QUADRUPED_PATCHES)
+    params['planner.horizon_steps'] = 8       # patches are two steps ahead (the fixation point)
+    h = Harness(ros_context, executor, **params)
+    T_map_base = _pose_T(0.0, 0.0)
+    h.pose(T_map_base)
+    hh = np.zeros((150, 150))
+    hh[93:100, 60:90] = 0.04                                 # a 4 cm kerb in view
+    terrain = _grid(hh)
+    cam = ROBOT.camera
+    half = PinholeCamera(cam.width // 2, cam.height // 2, cam.fx / 2, cam.fy / 2,
+                         (cam.width // 2 - 1) / 2.0, (cam.height // 2 - 1) / 2.0)
+    T_map_cam = T_map_base @ ROBOT.T_base_camera
+    pts = raycast_points(terrain, half, T_map_cam)
+    imu = Imu()
+    imu.header.stamp.sec = 10
+    q = R_to_quat(T_map_base[:3, :3] @ ROBOT.T_base_imu[:3, :3])
+    imu.orientation.x, imu.orientation.y, imu.orientation.z, imu.orientation.w = q
+    cloud = xyz_to_cloud(pts, 'camera_optical', 10.0)
+    h.pub_cloud.publish(cloud)                               # before any IMU: counted, dropped
+    assert spin_until(executor, lambda: h.node.counters['no_imu'] == 1, 5.0)
+    h.pub_imu.publish(imu)
+    assert spin_until(executor, lambda: h.node.imu is not None, 5.0)
+    h.pub_cloud.publish(cloud)
+    assert spin_until(executor, lambda: len(h.patches) > 0, 10.0)
+    msg = h.patches[-1]
+    assert msg.header.frame_id == 'map' and len(msg.patches) >= 50
+    g = np.array([msg.gravity.x, msg.gravity.y, msg.gravity.z])
+    np.testing.assert_allclose(g, [0, 0, -1], atol=1e-9)
+    fix = np.array([msg.fixation_point.x, msg.fixation_point.y, msg.fixation_point.z])
+    assert abs(fix[2] - (T_map_cam[2, 3] - 0.195)) < 1e-6
+    for p in msg.patches:
+        z = p.pose.position.z
+        on_floor, on_kerb = abs(z) < 0.003, abs(z - 0.04) < 0.003
+        assert on_floor or on_kerb, z
+        assert len(p.boundary) == 12 and p.kx <= p.ky and p.residual <= 0.002
+        assert p.support_points >= 12
+    # Patches feed the next plan (patch indices refer to this array).
+    plan = h.send_map(grid_to_msg(terrain), sec=10)   # same time as the cloud: fresh patches
+    assert plan.status == FootstepPlan.STATUS_OK, plan.status_text
+    assert any(f.patch_index >= 0 for f in plan.footsteps)
+    assert all(-1 <= f.patch_index < len(msg.patches) for f in plan.footsteps)
