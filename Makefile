@@ -1,0 +1,28 @@
+# The two commands of the README's Quick start are `make demo` and `make test`; both run the
+# idempotent set-up first (a second run takes about a second).
+VENV ?= $(CURDIR)/.venv
+export VENV
+BIN := $(VENV)/bin
+# Where `make demo` writes its run directory (override: make demo RUN_DIR=/tmp/run1).
+RUN_DIR ?=
+DEMO_ARGS ?=
+
+.PHONY: setup demo test test-core bench clean
+
+setup:
+	@bash scripts/setup.sh
+
+demo: setup
+	@$(BIN)/terrain-demo $(if $(RUN_DIR),--run-dir $(RUN_DIR)) $(DEMO_ARGS)
+
+test: setup
+	@$(BIN)/python -m pytest -q
+
+test-core: setup
+	@$(BIN)/python -m pytest -q -m "not graph"
+
+bench: setup
+	@bash scripts/run_benchmarks.sh
+
+clean:
+	rm -rf build runs

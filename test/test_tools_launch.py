@@ -1,0 +1,130 @@
+"""terrain-launch: starts processes with params and remaps, forwards Ctrl-C, leaves no orphan."""
+
+from __future__ import annotations
+
+import os
+import re
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+pytestmark = pytest.mark.graph
+BIN = Path(sys.executable).parent
+
+TALKER = '''
+import sys, rclpy
+from rclpy.executors import ExternalShutdownException
+from std_msgs.msg import String
+rclpy.init(args=sys.argv)
+node = rclpy.create_node('talker')
+node.declare_parameter('word', 'none')
+pub = node.create_publisher(String, 'chatter', 10)
+node.create_timer(0.1, lambda: pub.publish(String(data=node.get_parameter('word').value)))
+try:
+    rclpy.spin(node)
+except (KeyboardInterrupt, ExternalShutdownException):
+    pass
+'''
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    # A zombie still answers kill(0); read its state.
+    try:
+        return Path(f'/proc/{pid}/stat').read_text().split()[2] != 'Z'
+    except FileNotFoundError:
+        return False
+
+
+def _write_launch(tmp_path: Path, respawn: bool = False) -> Path:
+    (tmp_path / 'talker.py').write_text(TALKER)
+    (tmp_path / 'params.yaml').write_text('talker_a:\n  ros__parameters:\n    word: from_file\n')
+    launch = tmp_path / 'two.yaml'
+    launch.write_text(f'''
+arguments:
+  word: hello
+nodes:
+  - name: talker_a
+    command: [{sys.executable}, {tmp_path / 'talker.py'}]
+    params: [params.yaml]
+    remappings: {{chatter: /a/chatter}}
+  - name: talker_b
+    command: [{sys.executable}, {tmp_path / 'talker.py'}]
+    parameters: {{word: "${{word}}"}}
+    remappings: {{chatter: /b/chatter}}
+    respawn: {str(respawn).lower()}
+    respawn_delay: 0.2
+''')
+    return launch
+
+
+def _started_pids(proc, n: int, timeout: float = 20.0) -> dict:
+    pids = {}
+    deadline = time.monotonic() + timeout
+    while len(pids) < n and time.monotonic() < deadline:
+        line = proc.stdout.readline()
+        m = re.search(r'started (\S+) pid (\d+)', line)
+        if m:
+            pids[m.group(1)] = int(m.group(2))
+    return pids
+
+
+def test_two_processes_with_params_and_remaps_stop_cleanly_on_sigint(tmp_path):
+    launch = _write_launch(tmp_path)
+    proc = subprocess.Popen([BIN / 'terrain-launch', launch, 'word:=bonjour'],
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    pids = _started_pids(proc, 2)
+    assert set(pids) == {'talker_a', 'talker_b'}
+    try:
+        # Parameters and remaps reached the processes: the file value on /a, the argument on /b.
+        for topic, word in (('/a/chatter', 'from_file'), ('/b/chatter', 'bonjour')):
+            echo = subprocess.run([BIN / 'terrain-topic', 'echo', topic, '--once',
+                                   '--timeout', '15'], capture_output=True, text=True,
+                                  timeout=40)
+            assert f'data: {word}' in echo.stdout, echo.stdout + echo.stderr
+    finally:
+        proc.send_signal(signal.SIGINT)
+        proc.wait(timeout=30)
+    time.sleep(0.2)
+    assert not [n for n, p in pids.items() if _alive(p)], 'a launched process survived SIGINT'
+
+
+def test_respawn_restarts_a_dead_node_and_sigkill_of_launcher_leaves_no_orphan(tmp_path):
+    launch = _write_launch(tmp_path, respawn=True)
+    proc = subprocess.Popen([BIN / 'terrain-launch', launch], stdout=subprocess.PIPE,
+                            stderr=subprocess.STDOUT, text=True)
+    pids = _started_pids(proc, 2)
+    os.kill(pids['talker_b'], signal.SIGKILL)
+    again = _started_pids(proc, 1)
+    assert 'talker_b' in again and again['talker_b'] != pids['talker_b']
+    proc.kill()  # the launcher dies without cleaning up: children must follow it
+    proc.wait(timeout=10)
+    deadline = time.monotonic() + 10
+    survivors = [pids['talker_a'], again['talker_b']]
+    while time.monotonic() < deadline and any(map(_alive, survivors)):
+        time.sleep(0.1)
+    assert not any(map(_alive, survivors)), 'orphans left after the launcher was killed'
+
+
+def test_bad_launch_files_give_one_error_line(tmp_path):
+    cases = {
+        'missing.yaml': None,
+        'bad.yaml': 'nodes: [',
+        'noexe.yaml': 'nodes:\n  - name: x\n    executable: no_such_program\n',
+        'undeclared.yaml': 'nodes:\n  - name: x\n    command: [true]\n    args: ["${nope}"]\n',
+    }
+    for name, text in cases.items():
+        path = tmp_path / name
+        if text is not None:
+            path.write_text(text)
+        res = subprocess.run([BIN / 'terrain-launch', path], capture_output=True, text=True,
+                             timeout=30)
+        assert res.returncode != 0
+        assert len(res.stderr.strip().splitlines()) == 1, res.stderr
