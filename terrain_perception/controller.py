@@ -67,8 +67,19 @@ class WalkingConfig:
                                            '[rad/s]', 0.0, 100.0)
     capture_min_interval_s: float = param(0.5, 'Minimum time between capture requests [s] '
                                           '(paper 000: pictures twice a second)', 0.0, 60.0)
+    reach_fraction: float = param(0.93, 'Body lowered so no foot is farther than this '
+                                  'fraction of the leg length from its hip [-]', 0.5, 1.0)
     recenter: bool = param(True, 'Shift the body back over the centre of its four feet when '
                            'the plan is exhausted')
+
+
+class Phase(NamedTuple):
+    """The motion segment being executed: 'shift' (body moves, four feet down) or 'swing'."""
+
+    kind: str
+    legs: tuple          # swinging legs (empty for a shift)
+    t0: float            # start time [s]
+    duration: float      # [s]
 
 
 class JointCommand(NamedTuple):
@@ -94,6 +105,22 @@ class _Segment:
     @property
     def t_end(self) -> float:
         return self.t0 + self.duration
+
+    def joints(self, tau: float) -> tuple:
+        """Spline angles and rates (12,) at ``tau`` [s] into the segment (clipped).
+
+        Evaluates the cubic pieces directly (uniform knots) - much cheaper per control tick
+        than two ``CubicSpline.__call__``s.
+        """
+        x = self.spline.x
+        tau = min(max(float(tau), 0.0), self.duration)
+        h = x[1] - x[0]
+        i = min(int(tau / h), len(x) - 2)
+        dx = tau - x[i]
+        c = self.spline.c[:, i, :]
+        pos = ((c[0] * dx + c[1]) * dx + c[2]) * dx + c[3]
+        vel = (3.0 * c[0] * dx + 2.0 * c[1]) * dx + c[2]
+        return pos, vel
 
 
 @dataclass
@@ -260,8 +287,8 @@ class WalkingController:
             qs = self._stand_q()
             return JointCommand(qs, np.zeros(12))
         self.status = 'walking'
-        tau = t - self._seg.t0
-        return JointCommand(self._seg.spline(tau), self._seg.spline(tau, 1))
+        pos, vel = self._seg.joints(t - self._seg.t0)
+        return JointCommand(pos, vel)
 
     # -- outputs --------------------------------------------------------------------------
     @property
@@ -292,6 +319,12 @@ class WalkingController:
         return None if self._feet is None else self._feet.copy()
 
     @property
+    def phase(self) -> Optional[Phase]:
+        """Segment in progress, None when standing."""
+        seg = self._seg
+        return None if seg is None else Phase(seg.kind, seg.legs, seg.t0, seg.duration)
+
+    @property
     def pending_steps(self) -> int:
         """Footsteps (or trot pairs) not yet started."""
         return len(self._queue)
@@ -319,17 +352,16 @@ class WalkingController:
         return self._seg.body_fn(tau)
 
     def _update_still(self, t: float, dq: Optional[np.ndarray]) -> None:
-        body_moving = self._seg is not None and self._seg.moves_body
-        joints_moving = False
-        if dq is not None:
-            dq = np.asarray(dq, dtype=float).reshape(4, 3)
-            stance = np.ones(4, dtype=bool)
-            if self._seg is not None:
-                stance[list(self._seg.legs)] = False
-            joints_moving = bool(np.any(np.abs(dq[stance]) > self.config.still_joint_speed_rad_s))
-        if body_moving or joints_moving:
+        seg = self._seg
+        moving = seg is not None and seg.moves_body
+        if not moving and dq is not None:
+            speed = np.abs(np.asarray(dq, dtype=float).reshape(4, 3)).max(axis=1)
+            if seg is not None:
+                speed[list(seg.legs)] = 0.0
+            moving = bool(speed.max() > self.config.still_joint_speed_rad_s)
+        if moving:
             self._still_since = np.inf
-        elif not np.isfinite(self._still_since):
+        elif self._still_since == np.inf:
             self._still_since = t
 
     def _stand_q(self) -> np.ndarray:
@@ -414,19 +446,50 @@ class WalkingController:
         support = self._feet[stay, :2]
         body = goal.copy()
         margin = self.margin_m if len(stay) >= 3 else 0.0
+        # Feet along the coming swing: the COG must keep the margin during all of it.
+        taus = np.linspace(0.0, 1.0, 7)
+        poses = np.repeat(self._feet[None], len(taus), axis=0)
+        for k, leg in enumerate(legs):
+            sw = gaitlib.SwingTrajectory(self._feet[leg], targets[k],
+                                         self._apex(self._feet[leg], targets[k]), 1.0)
+            poses[:, leg] = sw.position(taus)
         for _ in range(3):
-            off0 = self._com_offset(body, self._feet)
-            off1 = self._com_offset(body, after)
-            if off0 is None or off1 is None:
+            body[2] = min(goal[2], self._max_body_z(body, poses))
+            offs = [self._com_offset(body, f) for f in poses]
+            if any(o is None for o in offs):
                 self._step_error(f'body pose for stepping {"+".join(LEG_NAMES[k] for k in legs)}'
                                  f' is out of the legs\' reach')
                 return None
-            mean = 0.5 * (off0 + off1)
-            extra = 0.5 * float(np.linalg.norm(off1 - off0))
+            offs = np.array(offs)
+            mean = 0.5 * (offs.min(axis=0) + offs.max(axis=0))
+            extra = float(np.linalg.norm(offs - mean, axis=1).max())
             cog, got = gaitlib.project_into_support(goal[:2] + mean, support, margin + extra)
             body[:2] = cog - mean
+        body[2] = min(goal[2], self._max_body_z(body, poses))
+        seg = self._shift_segment(body, t0, legs_swing=legs)
+        if seg is not None and len(stay) >= 3:
+            # The stance feet roll a little during the shift: re-project onto the support
+            # triangle they will really form.
+            rolled = (self._feet + seg.roll_end)[stay, :2]
+            cog, got = gaitlib.project_into_support(body[:2] + mean, rolled, margin + extra)
+            if np.linalg.norm(cog - mean - body[:2]) > 1e-4:
+                body[:2] = cog - mean
+                seg = self._shift_segment(body, t0, legs_swing=legs)
         self.last_margin_m = got - extra
-        return self._shift_segment(body, t0, legs_swing=legs)
+        return seg
+
+    def _max_body_z(self, body: np.ndarray, feet_poses: np.ndarray) -> float:
+        """Highest level-body z keeping every foot of ``feet_poses`` ``(n, 4, 3)`` within
+        ``reach_fraction`` of the leg length from its hip-flexion origin."""
+        m = self.model
+        R = rot_z(float(body[3]))
+        hips = m.leg_plane_offsets @ R.T + np.array([body[0], body[1], 0.0])
+        centres = np.array(feet_poses, dtype=float)
+        centres[..., 2] += m.foot_radius_m
+        d2 = np.sum((centres[..., :2] - hips[:, :2]) ** 2, axis=-1)
+        reach = self.config.reach_fraction * m.leg_length_m
+        dz = np.sqrt(np.maximum(reach ** 2 - d2, 0.0))
+        return float(np.min(centres[..., 2] + dz - hips[:, 2]))
 
     def _shift_segment(self, goal: np.ndarray, t0: float, legs_swing) -> Optional[_Segment]:
         start = self._body.copy()
@@ -551,4 +614,4 @@ def _shank_angles(q: np.ndarray) -> np.ndarray:
     return np.stack([q[..., 1] + q[..., 2], q[..., 0]], axis=-1)
 
 
-__all__ = ['WalkingConfig', 'WalkingController', 'JointCommand']
+__all__ = ['WalkingConfig', 'WalkingController', 'JointCommand', 'Phase']

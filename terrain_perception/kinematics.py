@@ -111,6 +111,13 @@ def solve_ik(model: RobotModel, feet_base: np.ndarray) -> IKResult:
     q1 = np.arctan2(a, b) - np.arctan2(l2 * np.sin(q2), l1 + l2 * np.cos(q2))
     q = np.stack([q0, q1, q2], axis=-1)
     lo, hi = model.joint_limits[..., 0], model.joint_limits[..., 1]
+    # Limits may span more than 2 pi (LittleDog's hip flexion): use the equivalent angle
+    # that lies within them when there is one.
+    for k in (-1.0, 1.0):
+        alt = q + 2.0 * np.pi * k
+        use = ((q < lo - _EPS_LIMIT) | (q > hi + _EPS_LIMIT)) & (alt >= lo - _EPS_LIMIT) & \
+            (alt <= hi + _EPS_LIMIT)
+        q = np.where(use, alt, q)
     out_of_limits = np.any((q < lo - _EPS_LIMIT) | (q > hi + _EPS_LIMIT), axis=-1)
     ok = in_plane & ~too_far & ~too_close & ~out_of_limits
     q = np.where(ok[..., None], q, np.nan)

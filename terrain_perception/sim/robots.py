@@ -44,6 +44,13 @@ class SimRobot:
         self.camera_link = by_name['link:camera_optical']
         self.imu_link = by_name['link:imu_link']
         self._jids = [int(j) for j in self.joint_ids]
+        self._zeros = [0.0] * len(self._jids)
+        # bound once: BulletClient.__getattr__ builds a partial on every attribute access
+        self._get_joint_states = client.getJointStates
+        self._set_motors = client.setJointMotorControlArray
+        self._get_base = client.getBasePositionAndOrientation
+        self._position_control = client.POSITION_CONTROL
+        self._gains = {}
         for link in self.foot_links:
             client.changeDynamics(body_id, int(link), lateralFriction=model.foot_friction,
                                   spinningFriction=0.01, rollingFriction=0.0,
@@ -98,33 +105,40 @@ class SimRobot:
         kp = self.model.position_gain if kp is None else float(kp)
         kd = self.model.velocity_gain if kd is None else float(kd)
         f = self.model.max_torque_nm if max_force is None else float(max_force)
-        dq = np.zeros(n) if dq is None else np.asarray(dq, dtype=float).reshape(n)
-        self.client.setJointMotorControlArray(
-            self.body_id, self._jids, self.client.POSITION_CONTROL,
-            targetPositions=q.tolist(), targetVelocities=dq.tolist(),
-            positionGains=[kp] * n, velocityGains=[kd] * n, forces=[f] * n)
+        gains = self._gains.get((kp, kd, f))
+        if gains is None:
+            gains = self._gains[(kp, kd, f)] = ([kp] * n, [kd] * n, [f] * n)
+        dq = self._zeros if dq is None else self._check_q(dq, 'joint velocity').tolist()
+        self._set_motors(
+            self.body_id, self._jids, self._position_control,
+            targetPositions=q.tolist(), targetVelocities=dq,
+            positionGains=gains[0], velocityGains=gains[1], forces=gains[2])
 
-    def _check_q(self, q: np.ndarray) -> np.ndarray:
+    def _check_q(self, q: np.ndarray, what: str = 'joint vector') -> np.ndarray:
         q = np.asarray(q, dtype=float).reshape(-1)
         if q.shape != (12,):
-            raise ValueError(f'joint vector must have 12 entries, got {q.size}')
-        if not np.all(np.isfinite(q)):
-            raise ValueError('joint vector contains NaN or inf')
+            raise ValueError(f'{what} must have 12 entries, got {q.size}')
+        if not np.isfinite(q.sum()):
+            raise ValueError(f'{what} contains NaN or inf')
         return q
 
     # -- state ----------------------------------------------------------------------------
     def joint_states(self) -> tuple:
         """``(q, dq, tau)`` each ``(12,)``: angles [rad], rates [rad/s], motor torques [N m]."""
-        states = self.client.getJointStates(self.body_id, self._jids)
-        q = np.array([s[0] for s in states])
-        dq = np.array([s[1] for s in states])
-        tau = np.array([s[3] for s in states])
-        return q, dq, tau
+        states = self._get_joint_states(self.body_id, self._jids)
+        a = np.array([(s[0], s[1], s[3]) for s in states])
+        return a[:, 0].copy(), a[:, 1].copy(), a[:, 2].copy()
 
     def base_pose(self) -> np.ndarray:
         """``T_world_base`` 4x4."""
-        pos, quat = self.client.getBasePositionAndOrientation(self.body_id)
+        pos, quat = self._get_base(self.body_id)
         return make_T(quat_to_R(quat), pos)
+
+    def base_tilt_deg(self) -> float:
+        """Angle between the base z axis and the world z axis [deg]."""
+        x, y, _, _ = self._get_base(self.body_id)[1]
+        c = 1.0 - 2.0 * (x * x + y * y)
+        return float(np.degrees(np.arccos(min(1.0, max(-1.0, c)))))
 
     def base_velocity(self) -> tuple:
         """``(v, w)``: linear [m/s] and angular [rad/s] velocity of the base, world frame."""

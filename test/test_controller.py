@@ -1,0 +1,173 @@
+"""WalkingController core without a simulator: perfect joint tracking (q_measured = command).
+
+Checks the desired motion against the footsteps: feet land on the targets, the dead-reckoning
+pose ends on the commanded pose, the model COG stays inside the support triangle with the
+margin during every crawl swing, and bad plans / stale plans / corrections behave.
+"""
+
+import numpy as np
+import pytest
+
+from terrain_perception import gait as G
+from terrain_perception import kinematics as K
+from terrain_perception.controller import WalkingConfig, WalkingController
+from terrain_perception.robot_model import load_robot_model
+from terrain_perception.transforms import make_T, rot_z
+
+DT = 0.01
+
+
+def _run(ctl, t0, t_max, on_tick=None):
+    t = t0
+    q = None
+    while t < t_max:
+        cmd = ctl.update(t, q)
+        q = cmd.positions
+        if on_tick:
+            on_tick(t, cmd)
+        if ctl.phase is None and ctl.pending_steps == 0 and t > t0 + 0.1:
+            break
+        t += DT
+    return t
+
+
+def _feet_from_command(ctl, cmd):
+    m = ctl.model
+    centres = K.forward(m, cmd.positions.reshape(4, 3))
+    T = ctl.odom_pose
+    world = centres @ T[:3, :3].T + T[:3, 3]
+    world[:, 2] -= m.foot_radius_m
+    return world
+
+
+@pytest.mark.parametrize('name', ['littledog', 'frog'])
+def test_crawl_lands_feet_keeps_cog_margin_and_ends_on_pose(name):
+    m = load_robot_model(name)
+    cfg = WalkingConfig(plan_timeout_s=1e3, touchdown_depth_m=0.0)
+    ctl = WalkingController(m, cfg)
+    T0 = make_T(rot_z(0.2), [0.5, -0.3, m.standing_height_m])
+    ctl.reset(0.0, None, T0)
+    legs, pos = G.straight_footsteps(m, T0, 0.5)
+    ctl.set_footsteps(legs, pos, 'walk', 0.0)
+    margins, landed, prev = [], [], [None]
+    targets = iter(zip(legs, pos))
+
+    def tick(t, cmd):
+        ph = ctl.phase
+        if prev[0] is not None and ph != prev[0] and prev[0].kind == 'swing':
+            leg, tgt = next(targets)
+            assert leg == prev[0].legs[0]
+            landed.append(np.linalg.norm(_feet_from_command(ctl, cmd)[leg] - tgt))
+        if ph is not None and ph.kind == 'swing':
+            feet = _feet_from_command(ctl, cmd)
+            T = ctl.odom_pose
+            com = K.com_base(m, cmd.positions.reshape(4, 3)) @ T[:3, :3].T + T[:3, 3]
+            stance = [k for k in range(4) if k not in ph.legs]
+            margins.append(G.support_margin(com[:2], feet[stance, :2]))
+        prev[0] = ph
+
+    _run(ctl, 0.0, 200.0, tick)
+    assert ctl.last_error == ''
+    assert ctl.steps_done == len(legs) == len(landed)
+    # Feet land on the footsteps (the IK is exact; spline knots every knot_dt_s).
+    assert max(landed) < 1e-6
+    # The model COG is never closer than the margin to a support-triangle edge.
+    assert min(margins) >= m.stability_margin_m - 2e-3
+    end = make_T(rot_z(0.2), T0[:3, 3] + 0.5 * np.array([np.cos(0.2), np.sin(0.2), 0.0]))
+    # Rolling feet shift the stance by a few foot-radius-scale millimetres.
+    np.testing.assert_allclose(ctl.odom_pose[:3, 3], end[:3, 3], atol=0.3 * m.foot_radius_m)
+    assert abs(np.arctan2(ctl.odom_pose[1, 0], ctl.odom_pose[0, 0]) - 0.2) < 0.02
+
+
+def test_unreachable_step_is_refused_and_robot_keeps_standing():
+    m = load_robot_model('littledog')
+    ctl = WalkingController(m, WalkingConfig())
+    ctl.reset(0.0)
+    q0 = ctl.update(0.0).positions
+    feet = G.nominal_feet_world(m, np.eye(4))
+    ctl.set_footsteps([0], [feet[0] + [0.6, 0.0, 0.0]], 'walk', 0.0)
+    cmd = ctl.update(0.01)
+    assert 'LF' in ctl.last_error and ctl.status == 'standing'
+    np.testing.assert_allclose(cmd.positions, q0, atol=1e-9)
+    assert np.all(cmd.velocities == 0)
+
+
+def test_bad_footsteps_raise_and_keep_the_plan():
+    m = load_robot_model('littledog')
+    ctl = WalkingController(m, WalkingConfig(plan_timeout_s=100))
+    ctl.reset(0.0)
+    legs, pos = G.straight_footsteps(m, ctl.odom_pose, 0.2)
+    ctl.set_footsteps(legs, pos, 'walk', 0.0)
+    bad = pos.copy()
+    bad[3, 1] = np.nan
+    with pytest.raises(ValueError, match='NaN'):
+        ctl.set_footsteps(legs, bad, 'walk', 0.0)
+    with pytest.raises(ValueError, match='leg indices'):
+        ctl.set_footsteps(legs + 4, pos, 'walk', 0.0)
+    with pytest.raises(ValueError, match='diagonal'):
+        ctl.set_footsteps([0, 1], pos[:2], 'trot', 0.0)
+    with pytest.raises(ValueError, match='gait'):
+        ctl.set_footsteps(legs, pos, 'gallop', 0.0)
+    assert ctl.pending_steps == len(legs)
+
+
+def test_stale_plan_starts_no_step():
+    m = load_robot_model('littledog')
+    ctl = WalkingController(m, WalkingConfig(plan_timeout_s=1.0))
+    ctl.reset(0.0)
+    legs, pos = G.straight_footsteps(m, ctl.odom_pose, 0.3)
+    ctl.set_footsteps(legs, pos, 'walk', 0.0)
+    t = _run(ctl, 5.0, 20.0)       # first update long after the plan was made
+    assert ctl.steps_done == 0 and 'older' in ctl.last_error
+    np.testing.assert_allclose(ctl.odom_pose, np.eye(4) @ make_T(t=[0, 0, 0]), atol=1e-9)
+    assert t < 5.2
+    # A fresh plan walks; the plan then goes stale mid-way and the robot stops and stands.
+    ctl.set_footsteps(legs, pos, 'walk', 20.0)
+    _run(ctl, 20.0, 60.0)
+    assert 0 < ctl.steps_done < len(legs)
+    assert ctl.phase is None and ctl.status == 'standing'
+
+
+def test_map_frame_footsteps_use_the_correction_and_odometry_reanchors():
+    m = load_robot_model('littledog')
+    ctl = WalkingController(m, WalkingConfig(plan_timeout_s=100, touchdown_depth_m=0.0))
+    ctl.reset(0.0)
+    T_map_odom = make_T(rot_z(0.5), [2.0, 1.0, 0.0])
+    ctl.apply_correction(T_map_odom)
+    np.testing.assert_allclose(ctl.map_pose, T_map_odom, atol=1e-12)
+    legs, pos_odom = G.straight_footsteps(m, ctl.odom_pose, 0.2)
+    pos_map = pos_odom @ T_map_odom[:3, :3].T + T_map_odom[:3, 3]
+    ctl.set_footsteps(legs, pos_map, 'walk', 0.0, frame='map')
+    _run(ctl, 0.0, 60.0)
+    assert ctl.steps_done == len(legs)
+    np.testing.assert_allclose(ctl.odom_pose[:2, 3], [0.2, 0.0], atol=0.005)
+    with pytest.raises(ValueError, match='orthonormal'):
+        ctl.apply_correction(np.diag([2.0, 1, 1, 1]))
+    with pytest.raises(ValueError):
+        ctl.apply_correction(np.full((4, 4), np.nan))
+
+
+def test_capture_requests_only_when_body_is_still():
+    m = load_robot_model('littledog')
+    cfg = WalkingConfig(plan_timeout_s=100, still_settle_s=0.1, capture_min_interval_s=0.5)
+    ctl = WalkingController(m, cfg)
+    ctl.reset(0.0)
+    legs, pos = G.straight_footsteps(m, ctl.odom_pose, 0.3)
+    ctl.set_footsteps(legs, pos, 'walk', 0.0)
+    captures = []
+
+    def tick(t, cmd):
+        v, w = ctl.odom_velocity()
+        if ctl.capture_due(t):
+            captures.append(t)
+            assert np.linalg.norm(v) < 1e-9 and np.linalg.norm(w) < 1e-9
+            assert ctl.phase is None or ctl.phase.kind == 'swing'
+            assert t - ctl.phase.t0 >= 0.1 - 1e-9 if ctl.phase else True
+
+    t_end = _run(ctl, 0.0, 60.0, tick)
+    assert len(captures) >= 3
+    assert np.min(np.diff(captures)) >= 0.5 - 1e-9
+    # Standing still: requests keep coming at the minimum interval.
+    for k in range(1, 4):
+        ctl.update(t_end + k * 0.5)
+        assert ctl.capture_due(t_end + k * 0.5)

@@ -1,0 +1,101 @@
+"""Leg kinematics: FK/IK round trip over the reachable workspace, unreachable targets
+reported (never clamped), Jacobian against finite differences, COM."""
+
+import numpy as np
+import pytest
+
+from terrain_perception import kinematics as K
+from terrain_perception.robot_model import load_robot_model
+
+ROBOTS = ('littledog', 'frog')
+
+
+def _reachable_joint_samples(m, n, rng):
+    """Joint angles within the limits on the IK's branch (knee direction of the profile,
+    foot below the hip in the leg plane)."""
+    lim = m.joint_limits
+    q = rng.uniform(lim[..., 0], lim[..., 1], size=(n, 4, 3))
+    q[..., 2] = np.where(m.knee_sign * q[..., 2] < 0, -q[..., 2], q[..., 2])
+    q = np.clip(q, lim[..., 0], lim[..., 1])
+    l1, l2 = m.thigh_length_m, m.shank_length_m
+    zp = -l1 * np.cos(q[..., 1]) - l2 * np.cos(q[..., 1] + q[..., 2])
+    keep = np.all(zp < -0.05 * (l1 + l2), axis=1)
+    return q[keep]
+
+
+@pytest.mark.parametrize('name', ROBOTS)
+def test_ik_round_trip_over_workspace(name):
+    m = load_robot_model(name)
+    rng = np.random.default_rng(7)
+    q = _reachable_joint_samples(m, 20000, rng)
+    assert len(q) > 500
+    p = K.forward(m, q)
+    res = K.solve_ik(m, p)
+    assert res.all_ok, res.reasons[:3]
+    np.testing.assert_allclose(K.forward(m, res.q), p, atol=1e-6, rtol=0)
+    # On this branch the joint solution is unique too.
+    np.testing.assert_allclose(res.q, q, atol=1e-6)
+
+
+@pytest.mark.parametrize('name', ROBOTS)
+def test_unreachable_targets_are_reported_not_clamped(name):
+    m = load_robot_model(name)
+    feet = K.forward(m, K.standing_joint_angles(m))
+    far = feet.copy()
+    far[1, 2] -= 2.0 * m.leg_length_m           # RF far below its hip
+    res = K.solve_ik(m, far)
+    assert res.ok.tolist() == [True, False, True, True]
+    assert np.all(np.isnan(res.q[1])) and np.all(np.isfinite(res.q[[0, 2, 3]]))
+    assert len(res.reasons) == 1 and 'RF' in res.reasons[0] and 'beyond' in res.reasons[0]
+    with pytest.raises(ValueError, match='RF'):
+        K.inverse(m, far)
+    # Inside the abduction-offset circle (foot at the hip).
+    close = feet.copy()
+    close[2] = m.hip_offsets[2]
+    res = K.solve_ik(m, close)
+    assert not res.ok[2] and 'LH' in ' '.join(res.reasons)
+    # Reachable in length but needing a joint beyond its limit: foot far above the hip.
+    up = feet.copy()
+    up[0] = m.hip_offsets[0] + [0.0, m.abduction_offset_m, 0.8 * m.leg_length_m]
+    res = K.solve_ik(m, up)
+    assert not res.ok[0]
+    # Batched input names the pose.
+    res = K.solve_ik(m, np.stack([feet, far]))
+    assert res.ok.tolist() == [[True] * 4, [True, False, True, True]]
+    assert res.reasons[0].startswith('pose 1 leg RF')
+
+
+def test_bad_shapes_are_refused():
+    m = load_robot_model('littledog')
+    with pytest.raises(ValueError, match='shape'):
+        K.forward(m, np.zeros((3, 3)))
+    with pytest.raises(ValueError, match='shape'):
+        K.solve_ik(m, np.zeros(12))
+
+
+@pytest.mark.parametrize('name', ROBOTS)
+def test_jacobian_matches_finite_differences(name):
+    m = load_robot_model(name)
+    rng = np.random.default_rng(3)
+    q = _reachable_joint_samples(m, 50, rng)
+    J = K.jacobian(m, q)
+    eps = 1e-6
+    for j in range(3):
+        dq = np.zeros(3)
+        dq[j] = eps
+        num = (K.forward(m, q + dq) - K.forward(m, q - dq)) / (2 * eps)
+        np.testing.assert_allclose(J[..., j], num, atol=1e-7)
+
+
+def test_com_is_mass_weighted_and_moves_with_a_leg():
+    m = load_robot_model('littledog')
+    q = K.standing_joint_angles(m)
+    com = K.com_base(m, q)
+    # Symmetric stance (mirror-symmetric legs): COM on the body's y = 0 plane, below the base.
+    assert abs(com[1]) < 1e-12 and com[2] < 0
+    # Swinging LF forward moves the COM forward by (leg mass share) x (foot displacement) order.
+    feet = K.forward(m, q)
+    feet[0, 0] += 0.05
+    com2 = K.com_base(m, K.inverse(m, feet))
+    leg_share = np.sum(m.link_masses_kg[1:]) / m.total_mass_kg
+    assert 0.2 * leg_share * 0.05 < com2[0] - com[0] < leg_share * 0.05
