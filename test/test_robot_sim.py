@@ -62,10 +62,11 @@ def _box_walk(use_height_map):
     m = load_robot_model('littledog')
     client, plane = make_flat_world(DT)
     robot = spawn_standing(client, m, dt_s=DT)
-    # A 5 cm high (above the 4 cm nominal swing lift), 8 cm deep box across the path.
+    # A 5 cm high (above the 4 cm nominal swing lift), 2 cm deep box across the path, between
+    # the footholds: every foot has to swing over it.
     import pybullet
-    half = [0.04, 0.25, 0.025]
-    x_box = 0.20
+    half = [0.01, 0.25, 0.025]
+    x_box = 0.25
     box = client.createMultiBody(0, client.createCollisionShape(pybullet.GEOM_BOX,
                                                                 halfExtents=half),
                                  basePosition=[x_box, 0.0, half[2]])
@@ -76,8 +77,8 @@ def _box_walk(use_height_map):
         on = (np.abs(xy[..., 0] - x_box) <= half[0]) & (np.abs(xy[..., 1]) <= half[1])
         return np.where(on, 2 * half[2], 0.0)
 
-    # The front feet step onto the box and off it again; the hind feet onto it.
-    legs, pos = G.straight_footsteps(m, robot.base_pose(), 0.3, 0.1, height=height)
+    legs, pos = G.straight_footsteps(m, robot.base_pose(), 0.4, 0.1, height=height)
+    assert np.all(np.abs(pos[:, 0] - x_box) > half[0] + 0.03)    # no foothold near it
     res = walk(client, robot, legs, pos, 'walk', dt_s=DT, max_time_s=60.0,
                height=height if use_height_map else None, obstacle_id=box, ground_id=plane)
     feet = robot.foot_positions_world()
@@ -87,11 +88,12 @@ def _box_walk(use_height_map):
 
 def test_swing_clears_a_box_in_the_path():
     res, feet, x_box, half = _box_walk(use_height_map=True)
-    assert not res.fell and res.steps_done == 12 and res.controller_error == ''
+    assert not res.fell and res.steps_done == 16 and res.controller_error == ''
+    # The swinging feet never touch it. (The shanks may: LittleDog's slanted shanks reach
+    # past the foot, so a foothold 4 cm from an edge is close - that is the planner's cost.)
     assert res.swing_hits == 0
-    # The front feet ended beyond the box, the hind feet on it.
-    assert np.all(feet[:2, 0] > x_box + half[0])
-    assert np.all(feet[2:, 2] > 2 * half[2])
+    # Every foot crossed the box.
+    assert np.all(feet[:, 0] > x_box + half[0])
     # Blind to the box (no height map) the same swings hit it: the check can fail.
     res_blind, _, _, _ = _box_walk(use_height_map=False)
     assert res_blind.swing_hits > 0

@@ -76,8 +76,9 @@ class WalkResult:
         max_tilt_deg: largest base tilt seen.
         steps_done: footsteps executed; controller_error: controller's last_error.
         swing_hits: number of physics steps in which a swinging foot (between 20 % and 80 % of
-            its swing, i.e. off its lift-off and landing spots) or a non-foot link touched
-            ``obstacle_id``.
+            its swing, i.e. off its lift-off and landing spots) touched ``obstacle_id``.
+        leg_hits: number of physics steps in which a non-foot link (shank, thigh, body)
+            touched ``obstacle_id``.
     """
 
     sim_time_s: float
@@ -91,6 +92,7 @@ class WalkResult:
     steps_done: int
     controller_error: str
     swing_hits: int = 0
+    leg_hits: int = 0
     extra: dict = field(default_factory=dict)
 
 
@@ -118,6 +120,7 @@ def walk(client, robot: SimRobot, legs: np.ndarray, positions: np.ndarray, gait:
     targets = {}
     order = list(zip(np.asarray(legs, int).tolist(), np.asarray(positions, float)))
     foot_err, t, min_margin, max_tilt, fell, hits = [], 0.0, np.inf, 0.0, False, 0
+    leg_hits = 0
     prev_seg = None
     step_i = 0
     masses = link_masses(client, robot)
@@ -164,11 +167,12 @@ def walk(client, robot: SimRobot, legs: np.ndarray, positions: np.ndarray, gait:
                                                linkIndexA=int(robot.foot_links[leg])):
                         hits += 1
         if obstacle_id is not None and robot.non_foot_contacts(obstacle_id):
-            hits += 1
+            leg_hits += 1
         if seg is None and ctl.pending_steps == 0 and t > 0.5:
             break
     return WalkResult(sim_time_s=t, fell=fell, T_start=T_start, T_end=robot.base_pose(),
                       T_end_desired=ctl.odom_pose, foot_errors_m=np.array(foot_err),
                       min_com_margin_m=min_margin if np.isfinite(min_margin) else np.nan,
                       max_tilt_deg=max_tilt, steps_done=ctl.steps_done,
-                      controller_error=ctl.last_error, swing_hits=hits)
+                      controller_error=ctl.last_error, swing_hits=hits,
+                      leg_hits=leg_hits)
