@@ -254,26 +254,41 @@ class StereoMatcher:
         rp = cv2.copyMakeBorder(right, 0, 0, p, 0, cv2.BORDER_CONSTANT, value=fill)
         return self._bm.compute(lp, rp)[:, p:]
 
-    def match(self, left: np.ndarray, right: np.ndarray) -> np.ndarray:
-        """Disparity ``(H, W)`` float32 [px] of two grey uint8 images, NaN where none or where
-        the match would lie left of the right image (``d > u``: geometrically impossible)."""
-        d = fixed_to_float(self.match_fixed(left, right), self.config.min_disparity)
+    def match_checked(self, left: np.ndarray, right: np.ndarray
+                      ) -> Tuple[np.ndarray, np.ndarray]:
+        """``(disp16, invalid)``: StereoBM's fixed-point output and the mask of pixels without
+        a disparity, including those whose match would lie left of the right image (``d > u``:
+        geometrically impossible, only produced in the padding)."""
+        disp16 = self.match_fixed(left, right)
+        invalid = disp16 < self.config.min_disparity * 16
         if self.pad_px:
-            d[d > self._columns(d.shape[1])] = np.nan
-        return d
+            invalid |= disp16 > self._columns16(disp16.shape[1])
+        return disp16, invalid
 
-    def _columns(self, width: int) -> np.ndarray:
-        cols = getattr(self, '_cols', None)
+    def match(self, left: np.ndarray, right: np.ndarray) -> np.ndarray:
+        """Disparity ``(H, W)`` float32 [px] of two grey uint8 images, NaN where none (see
+        :meth:`match_checked`)."""
+        return fixed_to_float(*self.match_checked(left, right))
+
+    def _columns16(self, width: int) -> np.ndarray:
+        cols = getattr(self, '_cols16', None)
         if cols is None or cols.shape[1] != width:
-            cols = self._cols = np.arange(width, dtype=np.float32)[None, :]
+            dtype = np.int16 if width < 2048 else np.int32
+            cols = self._cols16 = (np.arange(width) * 16).astype(dtype)[None, :]
         return cols
 
 
-def fixed_to_float(disp16: np.ndarray, min_disparity: int = 0) -> np.ndarray:
-    """OpenCV's 4-bit fixed-point disparity to float32 [px] with NaN for 'no match'."""
+def fixed_to_float(disp16: np.ndarray, invalid: 'np.ndarray | int' = 0) -> np.ndarray:
+    """OpenCV's 4-bit fixed-point disparity to float32 [px] with NaN for 'no match'.
+
+    ``invalid`` is a boolean mask of pixels without a disparity, or the matcher's
+    ``min_disparity`` (then ``disp16 < 16 * min_disparity`` is invalid, OpenCV's convention).
+    """
+    if not isinstance(invalid, np.ndarray):
+        invalid = disp16 < int(invalid) * 16
     d = disp16.astype(np.float32)
-    d *= 1.0 / 16.0
-    d[disp16 < min_disparity * 16] = np.nan
+    d *= np.float32(1.0 / 16.0)
+    d[invalid] = np.nan
     return d
 
 
@@ -293,34 +308,56 @@ def remove_row_outliers(disparity: np.ndarray, min_count: int,
     d = np.asarray(disparity, dtype=np.float32)
     if d.ndim != 2:
         raise ValueError(f'disparity must be (H, W), got shape {d.shape}')
-    h, _ = d.shape
     if min_disparity is None or num_disparities is None:
         if not np.isfinite(d).any():
             return d.copy()
         lo = int(np.floor(np.nanmin(d)))
-        span = int(np.floor(np.nanmax(d) + 0.5)) - lo + 1
+        n_values = int(np.floor(np.nanmax(d) + 0.5)) - lo + 1
     else:
-        lo, span = int(min_disparity), int(num_disparities) + 1
-    # Bin 0 of each row collects the blanks, bins 1..span the values rounded half up:
+        lo, n_values = int(min_disparity), int(num_disparities) + 1
+    # Bin 0 collects the blanks, bins 1..n_values the values rounded half up:
     # bin = floor(d + 0.5) - lo + 1, computed as a truncating cast of a positive float.
-    nb = span + 1
     b = d + np.float32(1.5 - lo)
     np.nan_to_num(b, copy=False, nan=0.0)
-    np.clip(b, 0.0, span + 0.5, out=b)
-    key = b.astype(np.int32)
-    key += (np.arange(h, dtype=np.int32) * nb)[:, None]
-    rare = np.bincount(key.ravel(), minlength=h * nb) < min_count
-    rare[::nb] = False
+    np.clip(b, 0.0, n_values + 0.5, out=b)
     out = d.copy()
-    out[rare[key]] = np.nan
+    out[_rare_in_row(b.astype(np.int32), n_values, min_count)] = np.nan
     return out
+
+
+def row_outliers_fixed(disp16: np.ndarray, invalid: np.ndarray, min_count: int,
+                       min_disparity: int, num_disparities: int) -> np.ndarray:
+    """:func:`remove_row_outliers` on StereoBM's fixed-point output (same rounding, same
+    result; the pipeline's fast path). Returns the boolean mask of the rare pixels."""
+    # floor(d + 0.5) = (disp16 + 8) >> 4 in integers; the blanks go to bin 0.
+    key = np.right_shift(disp16 + np.int16(8), 4)
+    key -= np.int16(min_disparity - 1)
+    key[invalid] = 0
+    return _rare_in_row(key, num_disparities + 1, min_count)
+
+
+def _rare_in_row(bins: np.ndarray, n_values: int, min_count: int) -> np.ndarray:
+    """Mask of the pixels whose bin (1..n_values; 0 = blank) holds fewer than ``min_count``
+    pixels of the same row: one bincount over (row, bin) pairs."""
+    h = bins.shape[0]
+    nb = n_values + 1
+    key = np.add(bins, (np.arange(h, dtype=np.int32) * nb)[:, None], dtype=np.int32)
+    rare = np.bincount(key.ravel(), minlength=h * nb) < min_count
+    rare[::nb] = False                         # the blanks are not outliers
+    return rare[key]
+
+
+_NEIGHBOURS = np.array([[1.0, 0.0, 1.0]], dtype=np.float32)
 
 
 def fill_rows(disparity: np.ndarray, passes: int = 1) -> np.ndarray:
     """Shao II-B-2: area filling of blank (NaN) pixels by the eight relations of Fig. 3.
 
-    See the module docstring for the cases. Each pass classifies every blank pixel against the
-    row as it was at the start of the pass, then applies Rules 1-4.
+    See the module docstring for the cases. Rules 1-4 say together: a blank pixel takes the
+    mean of those of its two row neighbours that are valid (both: Rule 4; only the right one,
+    including the row's first pixel: Rule 2; only the left one, including the last pixel:
+    Rule 3; none: Rule 1, left alone). That is how it is computed, with two 1x3 filters over the
+    row as it was at the start of the pass (sum of valid neighbours / their count).
 
     Returns:
         A float32 copy of ``disparity`` ``(H, W)`` [px] with the filled pixels set.
@@ -328,25 +365,16 @@ def fill_rows(disparity: np.ndarray, passes: int = 1) -> np.ndarray:
     d = np.array(disparity, dtype=np.float32)
     if d.ndim != 2:
         raise ValueError(f'disparity must be (H, W), got shape {d.shape}')
-    if d.shape[1] < 2:
-        return d
     for _ in range(int(passes)):
-        valid = np.isfinite(d)
-        left = np.full_like(d, np.nan)
-        left[:, 1:] = d[:, :-1]
-        right = np.full_like(d, np.nan)
-        right[:, :-1] = d[:, 1:]
-        lv = np.isfinite(left)    # False in column 0: no left neighbour (cases a, b)
-        rv = np.isfinite(right)   # False in the last column: no right neighbour (cases c, d)
-        blank = ~valid
-        take_right = blank & rv & ~lv       # (b), (f)  -> Rule 2
-        take_left = blank & lv & ~rv        # (d), (g)  -> Rule 3
-        take_mean = blank & lv & rv         # (h)       -> Rule 4
-        if not (take_right.any() or take_left.any() or take_mean.any()):
-            break                           # only (a), (c), (e) left: Rule 1
-        d[take_right] = right[take_right]
-        d[take_left] = left[take_left]
-        d[take_mean] = 0.5 * (left[take_mean] + right[take_mean])
+        blank = np.isnan(d)
+        valid = (~blank).astype(np.float32)
+        # Zero outside the row = no neighbour there (cases a-d at the row's ends).
+        total = cv2.filter2D(np.where(blank, np.float32(0.0), d), -1, _NEIGHBOURS,
+                             borderType=cv2.BORDER_CONSTANT)
+        count = cv2.filter2D(valid, -1, _NEIGHBOURS, borderType=cv2.BORDER_CONSTANT)
+        with np.errstate(invalid='ignore', divide='ignore'):
+            mean = total / count                # 0 / 0 = NaN: Rule 1
+        d = np.where(blank, mean, d)
     return d
 
 
@@ -374,7 +402,8 @@ def disparity_to_points(disparity: np.ndarray, stereo: StereoCamera,
         z = np.float32(cam.fx * stereo.baseline_m) / d
         # d <= 0 gives z <= 0 or inf; NaN fails both tests.
         z[~((z > 0) & (z <= max_depth_m))] = np.nan
-    return rays * z[..., None]
+    # OpenCV's per-element product of 3-channel images is ~3x faster than numpy broadcasting.
+    return cv2.multiply(np.ascontiguousarray(rays, dtype=np.float32), cv2.merge([z, z, z]))
 
 
 def coarse_subsample(points: np.ndarray, step: int) -> np.ndarray:
@@ -430,8 +459,14 @@ class StereoPipeline:
         """Post-processed disparity ``(H, W)`` float32 [px], NaN where invalid."""
         c = self.config
         nl, nr = self.prepare(left, right, channel_order)
-        d = self.matcher.match(nl, nr)
-        return postprocess(d, c)
+        # Outlier removal on the fixed-point output (the same result as postprocess() on the
+        # float disparity, with fewer passes over the image).
+        disp16, invalid = self.matcher.match_checked(nl, nr)
+        if c.outlier_removal:
+            invalid |= row_outliers_fixed(disp16, invalid, c.outlier_min_count,
+                                          c.min_disparity, c.num_disparities)
+        d = fixed_to_float(disp16, invalid)
+        return fill_rows(d, c.fill_passes) if c.area_filling else d
 
     def process(self, left: np.ndarray, right: np.ndarray,
                 channel_order: str = 'rgb') -> StereoFrame:

@@ -83,3 +83,20 @@ def test_plane_from_normal_orients_towards_camera():
     assert np.isclose(camera_pitch_from_pose(camera_looking_down(0.25, 1.0)), 0.25)
     # An optical frame equal to the world frame looks straight up.
     assert np.isclose(camera_pitch_from_pose(make_T(rot_x(0.0))), -np.pi / 2)
+
+
+def test_below_penalty_prefers_the_floor_under_a_larger_plateau():
+    # A plateau 10 cm up holds more points than the visible floor: plain RANSAC takes the
+    # plateau, the below-penalty (the floor points lie under the plateau) takes the floor.
+    rng = np.random.default_rng(4)
+    T = camera_looking_down(np.radians(30), 0.4)
+    floor = np.column_stack([rng.uniform(0.3, 1.5, 1000), rng.uniform(-1, 1, 1000),
+                             rng.normal(0, 0.001, 1000)])
+    top = np.column_stack([rng.uniform(1.0, 2.5, 1500), rng.uniform(-1, 1, 1500),
+                           0.1 + rng.normal(0, 0.001, 1500)])
+    pts = transform_points(invert(T), np.vstack([floor, top]))
+    plain = fit_ground_plane(pts, GroundPlaneConfig(below_penalty=0.0))
+    assert abs(plain.height_m - 0.3) < 0.005
+    ground = fit_ground_plane(pts, GroundPlaneConfig(below_penalty=2.0))
+    assert abs(ground.height_m - 0.4) < 0.005
+    assert abs(np.degrees(ground.pitch_rad) - 30) < 0.3

@@ -224,3 +224,19 @@ def test_config_validation():
         make_config(StereoConfig, {'block_size_px': 10})
     with pytest.raises(ValueError, match='not one of'):
         make_config(StereoConfig, {'normalisation': 'magic'})
+
+
+@pytest.mark.parametrize('outliers,filling', [(True, True), (True, False), (False, True)])
+def test_pipeline_fast_path_equals_the_float_steps(outliers, filling):
+    from terrain_perception.stereo import postprocess
+    rng = np.random.default_rng(5)
+    left = textured(seed=5)
+    right = np.roll(left, -9, axis=1)
+    right[40:60, 100:140] = rng.integers(0, 255, (20, 40))    # a patch of mismatches
+    cfg = StereoConfig(num_disparities=32, block_size_px=9, outlier_removal=outliers,
+                       area_filling=filling, outlier_min_count=6)
+    pipe = StereoPipeline(cfg, stereo_cam(w=200, h=120))
+    fast = pipe.disparity(left, right)
+    slow = postprocess(pipe.matcher.match(*pipe.prepare(left, right)), cfg)
+    np.testing.assert_array_equal(fast, slow)
+    assert np.isnan(fast).sum() > 0

@@ -191,3 +191,443 @@ def render_pair_raycast(grid: GridMap, stereo: StereoCamera, T_world_cam: np.nda
             # Exact z-depth of the centre ray of each pixel (not the supersampled average).
             depth_left = scene.depth_image(cam, T)
     return images[0], images[1], depth_left
+
+
+# ------------------------------------------------------------------------------ scoring
+
+
+def evaluable_mask(gt: np.ndarray, min_disparity: int, num_disparities: int) -> np.ndarray:
+    """Pixels a matcher can get right: finite ground truth inside the searched range whose
+    match lies inside the right image (``u - d >= 0``)."""
+    u = np.arange(gt.shape[1], dtype=np.float32)[None, :]
+    with np.errstate(invalid='ignore'):
+        return (np.isfinite(gt) & (gt >= min_disparity)
+                & (gt < min_disparity + num_disparities) & (u - gt >= 0))
+
+
+def score_disparity(est: np.ndarray, gt: np.ndarray, mask: np.ndarray,
+                    threshold_px: float = 2.0) -> Dict[str, float]:
+    """bad-pixel rate with holes counted as bad, bad rate among estimates, and coverage."""
+    have = np.isfinite(est) & mask
+    with np.errstate(invalid='ignore'):
+        wrong = np.abs(est - gt) > threshold_px
+    n = max(int(mask.sum()), 1)
+    bad_est = int((wrong & have).sum())
+    return {'bad2': float((n - have.sum() + bad_est) / n),
+            'bad2_est': float(bad_est / max(int(have.sum()), 1)),
+            'coverage': float(have.sum() / n)}
+
+
+def height_errors(points_cam: np.ndarray, T_world_cam: np.ndarray, grid: GridMap) -> np.ndarray:
+    """Height [m] of every valid camera-frame point in the world minus the true terrain height
+    at the same x-y (points over no terrain are left out)."""
+    from terrain_perception.raycast import interpolate_height
+    pts = points_cam.reshape(-1, 3)
+    pts = pts[np.isfinite(pts).all(axis=1)].astype(np.float64)
+    world = transform_points(T_world_cam, pts)
+    err = world[:, 2] - interpolate_height(grid, world[:, :2])
+    return err[np.isfinite(err)]
+
+
+def make_sgbm(num_disparities: int, min_disparity: int = 0, block_size: int = 5):
+    """StereoSGBM as a user would configure it (OpenCV's documented P1/P2 rule of thumb)."""
+    return cv2.StereoSGBM.create(minDisparity=min_disparity, numDisparities=num_disparities,
+                                 blockSize=block_size, P1=8 * block_size ** 2,
+                                 P2=32 * block_size ** 2, disp12MaxDiff=1, preFilterCap=63,
+                                 uniquenessRatio=10, speckleWindowSize=100, speckleRange=2)
+
+
+METHODS = ('stereobm_opencv_defaults', 'raw', 'outliers_only', 'filling_only', 'post',
+           'post_fill4', 'sgbm')
+METHOD_LABELS = {
+    'stereobm_opencv_defaults': 'StereoBM, OpenCV defaults',
+    'raw': 'raw StereoBM (our matcher)',
+    'outliers_only': '+ row outlier removal',
+    'filling_only': '+ area filling',
+    'post': '+ both (pipeline default)',
+    'post_fill4': '+ both, 4 filling passes',
+    'sgbm': 'StereoSGBM (reference)',
+}
+
+
+def disparities_of_all_methods(left: np.ndarray, right: np.ndarray,
+                               cfg: StereoConfig) -> Dict[str, np.ndarray]:
+    """Float disparity [px] (NaN = none) of every method on one grey pair."""
+    matcher = StereoMatcher(cfg)
+    nl, nr = normalise(left, cfg.normalisation), normalise(right, cfg.normalisation)
+    raw = matcher.match(nl, nr)
+    plain = cv2.StereoBM.create(cfg.num_disparities, cfg.block_size_px)
+    plain.setMinDisparity(cfg.min_disparity)
+    out = {
+        'stereobm_opencv_defaults': fixed_to_float(plain.compute(left, right), cfg.min_disparity),
+        'raw': raw,
+        'outliers_only': postprocess(raw, replace(cfg, outlier_removal=True,
+                                                  area_filling=False)),
+        'filling_only': postprocess(raw, replace(cfg, outlier_removal=False,
+                                                 area_filling=True)),
+        'post': postprocess(raw, replace(cfg, outlier_removal=True, area_filling=True)),
+        'post_fill4': postprocess(raw, replace(cfg, outlier_removal=True, area_filling=True,
+                                               fill_passes=4)),
+        'sgbm': fixed_to_float(make_sgbm(cfg.num_disparities, cfg.min_disparity)
+                               .compute(left, right), cfg.min_disparity),
+    }
+    return out
+
+
+# ------------------------------------------------------------------------------ simulated set
+
+
+@dataclass
+class SceneResult:
+    robot: str
+    course: str
+    seed: int
+    scores: Dict[str, Dict[str, float]]
+    pitch_err_deg: float
+    height_err_m: float
+
+
+def robot_num_disparities(stereo: StereoCamera, T_world_cam: np.ndarray,
+                          margin: float = 1.25) -> int:
+    """Search range [px] covering the floor at the bottom image row, with a margin for
+    obstacles and body motion, rounded up to a multiple of 16."""
+    cam = stereo.left
+    ray = T_world_cam[:3, :3] @ np.array([0.0, (cam.height - 1 - cam.cy) / cam.fy, 1.0])
+    if ray[2] >= 0:
+        raise ValueError('the camera does not see the floor at its bottom row')
+    z = T_world_cam[2, 3] / -ray[2]           # z-depth of the floor hit (ray has z = 1)
+    d = stereo.left.fx * stereo.baseline_m / z * margin
+    return int(np.ceil(d / 16.0) * 16)
+
+
+def _course_scene(course: str, seed: int, resolution_m: float) -> Tuple[GridMap, GridMap]:
+    """A course from ``terrain_perception.terrain`` and the same course on a 6 m x 4 m floor
+    (what the camera sees around the 1-2 m wide course; the simulator draws that floor)."""
+    from terrain_perception.grid import crop_or_pad
+    from terrain_perception.terrain import make_course
+    g = make_course(course, seed, resolution_m=resolution_m)
+    ny = int(round(4.0 / resolution_m))
+    j0 = int(round((g.origin_xy[1] + 2.0) / resolution_m))
+    origin = (g.origin_xy[0] - 1.0, g.origin_xy[1] - j0 * resolution_m)
+    out = crop_or_pad(g, origin, (int(round(6.0 / resolution_m)), ny), fill=0.0)
+    out.metadata.update(g.metadata)
+    return g, out
+
+
+def _body_pose(rng: np.random.Generator, x: float, height: float) -> np.ndarray:
+    from terrain_perception.transforms import rpy_to_R
+    rpy = np.radians([rng.uniform(-3, 3), rng.uniform(-3, 3), rng.uniform(-8, 8)])
+    return make_T(rpy_to_R(*rpy), [x + rng.uniform(-0.1, 0.1), rng.uniform(-0.1, 0.1), height])
+
+
+ROBOT_VIEWS = {
+    # robot: (courses, distance from the body to the rough section's start [m])
+    'littledog': (('rocks-6cm', 'rocks-12cm', 'stones-15cm'), 0.25),
+    'frog': (('stones-15cm', 'rocks-12cm'), 0.7),
+}
+
+
+def run_simulated(quick: bool, renderer: str = 'raycast') -> Tuple[List[SceneResult], dict]:
+    from terrain_perception.robot_model import load_robot_model
+    views = 1 if quick else 3
+    results: List[SceneResult] = []
+    timing_pair = None
+    print(f'rendering with the {renderer} renderer')
+    for robot, (courses, lead_m) in ROBOT_VIEWS.items():
+        rm = load_robot_model(robot)
+        stereo = rm.stereo
+        for course in courses:
+            for k in range(views):
+                seed = 100 + k
+                course_grid, grid = _course_scene(course, seed, 0.005)
+                rng = np.random.default_rng(seed)
+                x0 = float(grid.metadata['rough_extent_xy'][0]) - lead_m
+                T = _body_pose(rng, x0, rm.standing_height_m) @ rm.T_base_camera
+                nd = robot_num_disparities(stereo, T)
+                cfg = StereoConfig(num_disparities=nd)
+                left, right, depth = render_pair(renderer, course_grid, grid, stereo, T, seed)
+                if timing_pair is None and robot == 'frog':
+                    timing_pair = (left, right, stereo)
+                gt = stereo.depth_to_disparity(depth)
+                mask = evaluable_mask(gt, cfg.min_disparity, nd)
+                scores = {}
+                for name, d in disparities_of_all_methods(left, right, cfg).items():
+                    s = score_disparity(d, gt, mask)
+                    pts = disparity_to_points(d, stereo, cfg.max_depth_m)
+                    err = height_errors(pts, T, grid)
+                    s['height_rmse_m'] = float(np.sqrt(np.mean(err ** 2))) if len(err) else \
+                        float('nan')
+                    scores[name] = s
+                frame = StereoPipeline(cfg, stereo).process(left, right)
+                plane = fit_ground_plane(frame.points, GroundPlaneConfig())
+                p_err = np.degrees(plane.pitch_rad - camera_pitch_from_pose(T))
+                h_err = plane.height_m - T[2, 3]
+                results.append(SceneResult(robot, course, seed, scores, float(p_err),
+                                           float(h_err)))
+                print(f'  {robot:9s} {course:11s} seed {seed}: {nd} disparities, bad2 raw '
+                      f'{scores["raw"]["bad2"]:.3f} post {scores["post"]["bad2"]:.3f} sgbm '
+                      f'{scores["sgbm"]["bad2"]:.3f}, pitch error {p_err:+.2f} deg')
+    return results, timing_pair
+
+
+#: Rays per pixel side of the pybullet renderer. TinyRenderer samples the ground texture
+#: without mip-mapping, so at FROG-I ranges (2-6 mm pixel footprint on 0.5 mm texels) each view
+#: aliases differently and block matching fails (bad2 of raw StereoBM 0.52 at 1x, 0.13 at 2x on
+#: one stones-15cm view); rendering at 2x and averaging is what a lens and pixel do.
+SUPERSAMPLE = 2
+
+
+def render_pair(renderer: str, course: GridMap, padded: GridMap, stereo: StereoCamera,
+                T: np.ndarray, seed: int):
+    """``(left, right, depth)`` grey uint8 images and left z-depth [m] of the course seen from
+    the left optical frame ``T``: ``'pybullet'`` = the simulator (``terrain_perception.sim.
+    world``: textured heightfield + floor, TinyRenderer), ``'raycast'`` = the ray-cast
+    renderer of this module over ``padded`` (the course on a flat floor). Both render at
+    :data:`SUPERSAMPLE` x the resolution and average down (anti-aliasing)."""
+    if renderer == 'raycast':
+        return render_pair_raycast(padded, stereo, T, seed=seed)
+    if renderer == 'pybullet':
+        import pybullet
+        from pybullet_utils.bullet_client import BulletClient
+        from terrain_perception.sim.world import SimWorld, render_camera, render_stereo
+        cam, s = stereo.left, SUPERSAMPLE
+        hi = StereoCamera(PinholeCamera(cam.width * s, cam.height * s, cam.fx * s, cam.fy * s,
+                                        (cam.cx + 0.5) * s - 0.5, (cam.cy + 0.5) * s - 0.5),
+                          stereo.baseline_m)
+        client = BulletClient(connection_mode=pybullet.DIRECT)
+        try:
+            SimWorld(client, course, texture_seed=seed)
+            left, right, _ = render_stereo(client, T, hi)
+            # The exact depth of each native pixel's centre ray.
+            _, depth = render_camera(client, T, cam, 0.05, 10.0)
+        finally:
+            client.disconnect()
+        size = (cam.width, cam.height)
+        return (cv2.resize(to_gray(left, 'rgb'), size, interpolation=cv2.INTER_AREA),
+                cv2.resize(to_gray(right, 'rgb'), size, interpolation=cv2.INTER_AREA), depth)
+    raise ValueError(f'unknown renderer {renderer!r}')
+
+
+# ------------------------------------------------------------------------------ timing
+
+
+def time_pipeline(left: np.ndarray, right: np.ndarray, stereo: StereoCamera, reps: int,
+                  num_disparities: int = 64) -> Dict[str, float]:
+    """Median single-threaded time of raw StereoBM and of the full core pipeline [s]."""
+    threads = cv2.getNumThreads()
+    cv2.setNumThreads(1)
+    try:
+        cfg = StereoConfig(num_disparities=num_disparities)
+        pipe = StereoPipeline(cfg, stereo)
+        # The raw baseline: the bare cv2.StereoBM call with the same settings, no padding.
+        bare = StereoMatcher(replace(cfg, pad_left=False))
+        sgbm = make_sgbm(num_disparities)
+        t_raw, t_pipe, t_sgbm = [], [], []
+        for i in range(reps + 2):
+            t0 = time.perf_counter()
+            bare.match_fixed(left, right)
+            t1 = time.perf_counter()
+            pipe.process(left, right)
+            t2 = time.perf_counter()
+            if i % 3 == 0:
+                sgbm.compute(left, right)
+                t_sgbm.append(time.perf_counter() - t2)
+            if i >= 2:                        # two warm-up rounds
+                t_raw.append(t1 - t0)
+                t_pipe.append(t2 - t1)
+        # The ratio of medians of interleaved runs cancels most of the machine's load swings.
+        return {'stereobm_s': float(np.median(t_raw)), 'pipeline_s': float(np.median(t_pipe)),
+                'sgbm_s': float(np.median(t_sgbm)),
+                'ratio': float(np.median(t_pipe) / np.median(t_raw))}
+    finally:
+        cv2.setNumThreads(threads)
+
+
+# ------------------------------------------------------------------------------ files
+
+
+def read_pfm(path: Path) -> np.ndarray:
+    """A PFM image (Middlebury disparities) as float32, top row first."""
+    with open(path, 'rb') as f:
+        kind = f.readline().strip()
+        if kind not in (b'Pf', b'PF'):
+            raise ValueError(f'{path} is not a PFM file (header {kind!r})')
+        dims = f.readline().split()
+        while not dims:
+            dims = f.readline().split()
+        w, h = int(dims[0]), int(dims[1])
+        scale = float(f.readline().strip())
+        dtype = '<f4' if scale < 0 else '>f4'
+        ch = 3 if kind == b'PF' else 1
+        data = np.frombuffer(f.read(w * h * ch * 4), dtype=dtype)
+    if data.size != w * h * ch:
+        raise ValueError(f'{path}: truncated PFM ({data.size} of {w * h * ch} values)')
+    img = data.reshape(h, w, ch)[::-1, :, 0] if ch == 3 else data.reshape(h, w)[::-1]
+    return np.ascontiguousarray(img, dtype=np.float32)
+
+
+def read_image(path: Path) -> np.ndarray:
+    """A rectified grey image (PNG/any OpenCV format, or NPY) as uint8 ``(H, W)``."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f'no such image: {path}')
+    if path.suffix.lower() == '.npy':
+        img = np.load(path)
+    else:
+        img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+        if img is None:
+            raise ValueError(f'OpenCV cannot read {path}')
+        if img.ndim == 3:
+            img = cv2.cvtColor(img[..., :3], cv2.COLOR_BGR2GRAY)
+    if img.dtype == np.uint16:
+        img = (img >> 8).astype(np.uint8)
+    elif img.dtype != np.uint8:
+        img = np.clip(img, 0, 255).astype(np.uint8)
+    return to_gray(img)
+
+
+def read_disparity(path: Path) -> np.ndarray:
+    """Ground-truth disparity [px], NaN = none: PFM (inf = none), NPY (float; <= 0 or NaN =
+    none) or PNG (KITTI: uint16 = disparity x 256, 0 = none)."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f'no such ground truth: {path}')
+    suffix = path.suffix.lower()
+    if suffix == '.pfm':
+        d = read_pfm(path)
+    elif suffix == '.npy':
+        d = np.load(path).astype(np.float32)
+    else:
+        raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+        if raw is None or raw.dtype != np.uint16 or raw.ndim != 2:
+            raise ValueError(f'{path}: a PNG ground truth must be 16-bit single channel '
+                             '(KITTI: disparity x 256, 0 = none)')
+        d = raw.astype(np.float32) / 256.0
+    return np.where(np.isfinite(d) & (d > 0), d, np.nan).astype(np.float32)
+
+
+def run_files(args) -> dict:
+    left, right = read_image(args.left), read_image(args.right)
+    if left.shape != right.shape:
+        raise ValueError(f'left is {left.shape}, right is {right.shape}')
+    cfg = StereoConfig(num_disparities=args.num_disparities, block_size_px=args.block_size)
+    disps = disparities_of_all_methods(left, right, cfg)
+    figures: dict = {'pair': {'left': str(args.left), 'right': str(args.right),
+                              'size': list(left.shape), 'num_disparities': cfg.num_disparities}}
+    if args.gt is not None:
+        gt = read_disparity(args.gt)
+        if gt.shape != left.shape:
+            raise ValueError(f'ground truth is {gt.shape}, images are {left.shape}')
+        mask = evaluable_mask(gt, cfg.min_disparity, cfg.num_disparities)
+        scores = {m: score_disparity(d, gt, mask) for m, d in disps.items()}
+        print(f'{"method":30s} {"bad2":>7s} {"bad2_est":>8s} {"coverage":>8s}')
+        for m in METHODS:
+            s = scores[m]
+            print(f'{METHOD_LABELS[m]:30s} {s["bad2"]:7.3f} {s["bad2_est"]:8.3f} '
+                  f'{s["coverage"]:8.3f}')
+        figures.update({'bad2_raw': scores['raw']['bad2'], 'bad2_post': scores['post']['bad2'],
+                        'bad2_sgbm': scores['sgbm']['bad2'],
+                        'coverage_post': scores['post']['coverage'], 'methods': scores})
+    else:
+        print(f'{"method":30s} {"coverage (no ground truth)":>26s}')
+        for m in METHODS:
+            print(f'{METHOD_LABELS[m]:30s} {np.isfinite(disps[m]).mean():26.3f}')
+        figures['coverage_post'] = float(np.isfinite(disps['post']).mean())
+    if args.save_disparity is not None:
+        np.save(args.save_disparity, disps['post'])
+        print(f'post-processed disparity written to {args.save_disparity}')
+    return figures
+
+
+# ------------------------------------------------------------------------------ entry points
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument('--left', type=Path, help='left rectified image (PNG/NPY)')
+    parser.add_argument('--right', type=Path, help='right rectified image (PNG/NPY)')
+    parser.add_argument('--gt', type=Path, default=None,
+                        help='ground-truth left disparity (PFM / NPY / KITTI 16-bit PNG)')
+    parser.add_argument('--num-disparities', type=int, default=64,
+                        help='search range for --left/--right [px], multiple of 16')
+    parser.add_argument('--block-size', type=int, default=15,
+                        help='SAD window for --left/--right [px], odd')
+    parser.add_argument('--save-disparity', type=Path, default=None,
+                        help='write the post-processed disparity (NPY) of --left/--right')
+    parser.add_argument('--renderer', choices=('auto', 'raycast', 'pybullet'), default='auto',
+                        help='simulated set: pybullet (sim world) or the ray-cast renderer')
+
+
+def _mean(results: List[SceneResult], method: str, key: str) -> float:
+    vals = [r.scores[method][key] for r in results]
+    return float(np.nanmean(vals)) if vals else float('nan')
+
+
+def run(args: argparse.Namespace) -> dict:
+    if (args.left is None) != (args.right is None):
+        raise ValueError('--left and --right go together')
+    if args.left is not None:
+        return run_files(args)
+    renderer = getattr(args, 'renderer', 'auto')
+    if renderer == 'auto':
+        renderer = default_renderer()
+    results, timing_pair = run_simulated(args.quick, renderer)
+
+    print(f'\nSimulated set: {len(results)} pairs ({", ".join(sorted({r.robot for r in results}))}'
+          f'; courses {", ".join(sorted({r.course for r in results}))}), bad2 = share of '
+          'evaluable pixels missing or > 2 px off')
+    header = f'{"method":30s} {"bad2":>7s} {"bad2_est":>8s} {"coverage":>8s} {"h_rmse_m":>9s}'
+    for robot in sorted({r.robot for r in results}) + ['all']:
+        sub = [r for r in results if robot in ('all', r.robot)]
+        print(f'\n[{robot}] ({len(sub)} pairs)\n{header}')
+        for m in METHODS:
+            print(f'{METHOD_LABELS[m]:30s} {_mean(sub, m, "bad2"):7.3f} '
+                  f'{_mean(sub, m, "bad2_est"):8.3f} {_mean(sub, m, "coverage"):8.3f} '
+                  f'{_mean(sub, m, "height_rmse_m"):9.4f}')
+
+    pitch = np.abs([r.pitch_err_deg for r in results])
+    height = np.abs([r.height_err_m for r in results])
+    print(f'\nRANSAC ground plane on {len(results)} scenes with obstacles: pitch error mean '
+          f'{pitch.mean():.3f} deg, max {pitch.max():.3f} deg; camera height error mean '
+          f'{1000 * height.mean():.1f} mm, max {1000 * height.max():.1f} mm')
+
+    # Timing on the first FROG-I view (640x480) with 64 disparities.
+    left, right, stereo = timing_pair
+    t = time_pipeline(left, right, stereo, reps=10 if args.quick else 40)
+    print(f'\nTiming, 640x480, 64 disparities, cv2.setNumThreads(1), median of interleaved runs:'
+          f'\n  raw StereoBM {1000 * t["stereobm_s"]:.1f} ms, full pipeline (normalise + padded '
+          f'match + post-processing + reprojection + coarse) {1000 * t["pipeline_s"]:.1f} ms '
+          f'= {t["ratio"]:.2f}x raw -> {1 / t["pipeline_s"]:.1f} Hz; StereoSGBM '
+          f'{1000 * t["sgbm_s"]:.1f} ms')
+
+    details = {
+        'renderer': renderer,
+        'scenes': [{'robot': r.robot, 'course': r.course, 'seed': r.seed,
+                    'pitch_err_deg': r.pitch_err_deg, 'height_err_m': r.height_err_m,
+                    'scores': r.scores} for r in results],
+        'methods_mean': {m: {k: _mean(results, m, k) for k in
+                             ('bad2', 'bad2_est', 'coverage', 'height_rmse_m')}
+                         for m in METHODS},
+        'timing_s': t,
+        'pitch_err_deg_mean': float(pitch.mean()),
+        'camera_height_err_m_max': float(height.max()),
+    }
+    return {
+        'bad2_raw': _mean(results, 'raw', 'bad2'),
+        'bad2_post': _mean(results, 'post', 'bad2'),
+        'bad2_sgbm': _mean(results, 'sgbm', 'bad2'),
+        'coverage_post': _mean(results, 'post', 'coverage'),
+        'height_rmse_post_m': _mean(results, 'post', 'height_rmse_m'),
+        'time_ratio_pipeline_vs_stereobm': t['ratio'],
+        'pipeline_hz_640x480': 1.0 / t['pipeline_s'],
+        'pitch_err_deg': float(pitch.max()),
+        'details': details,
+    }
+
+
+def default_renderer() -> str:
+    """The simulator's pybullet renderer when it exists, else the ray-cast renderer."""
+    try:
+        from terrain_perception.sim import world  # noqa: F401
+    except ImportError:
+        return 'raycast'
+    return 'pybullet' if hasattr(world, 'render_stereo') else 'raycast'
