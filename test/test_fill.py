@@ -289,3 +289,46 @@ def test_window_must_match_a_prebuilt_library():
     lib = PatchLibrary([smooth_terrain(20, 1)], 7)
     with pytest.raises(ValueError, match='w = 7'):
         fill_terrain(h, None, lib, FillConfig())
+
+
+def _random_rays(seed, n=400):
+    rng = np.random.default_rng(seed)
+    cams = np.c_[rng.uniform(-0.1, 0.0, n), rng.uniform(0.1, 0.3, n), rng.uniform(0.2, 0.3, n)]
+    pts = np.c_[rng.uniform(0.05, 0.4, n), rng.uniform(0.0, 0.4, n), rng.uniform(0, 0.05, n)]
+    return cams, pts
+
+
+def test_target_culling_and_ceiling_keep_the_bounds():
+    cams, pts = _random_rays(0)
+    cfg = make_config(BoundsConfig, {'step_cells': 0.1})
+    full = line_of_sight_bounds((40, 40), RES, (0, 0), cams, pts, cfg)
+    target = blob_mask(40, 3, 0.2)
+    culled = line_of_sight_bounds((40, 40), RES, (0, 0), cams, pts, cfg, target=target)
+    assert np.isnan(culled[~target]).all()
+    # The samples sit at other places along the shortened rays, so a cell a ray only clips
+    # at a corner may be bounded in one run and not the other; values agree up to the
+    # sample spacing times the ray slope (<= 3), except where one run caught a corner clip of
+    # another (lower) ray that the other run stepped over.
+    ok = np.isfinite(full) & target
+    assert ok.sum() > 50
+    assert np.isfinite(culled[ok]).mean() > 0.98
+    assert np.isfinite(full[np.isfinite(culled)]).all()
+    both = ok & np.isfinite(culled)
+    assert (np.abs(culled[both] - full[both]) <= 3 * 0.1 * RES).mean() > 0.98
+    ceil = line_of_sight_bounds((40, 40), RES, (0, 0), cams, pts, cfg, ceiling_m=0.1)
+    low = np.isfinite(full) & (full < 0.1 - 0.01)
+    assert np.isfinite(ceil[low]).mean() > 0.98
+    both = low & np.isfinite(ceil)
+    assert (np.abs(ceil[both] - full[both]) <= 3 * 0.1 * RES).mean() > 0.98
+    assert np.nanmax(ceil) <= 0.1 + 1e-12                 # nothing above the ceiling is used
+    assert np.isnan(ceil[np.isfinite(full) & (full > 0.1 + 0.01)]).mean() > 0.95
+
+
+def test_centre_radius_only_uses_samples_near_the_cell_centre():
+    # one ray along y = 0.25 cells into row j=0: it passes 0.25 cells from the centres
+    cam = np.array([0.0, 0.0025, 0.2])
+    pt = np.array([[0.2, 0.0025, 0.0]])
+    near = make_config(BoundsConfig, {'center_radius_cells': 0.3, 'step_cells': 0.05})
+    far = make_config(BoundsConfig, {'center_radius_cells': 0.2, 'step_cells': 0.05})
+    assert np.isfinite(line_of_sight_bounds((20, 2), RES, (0, 0), cam, pt, near)[:, 0]).sum() > 15
+    assert np.isnan(line_of_sight_bounds((20, 2), RES, (0, 0), cam, pt, far)).all()
