@@ -46,7 +46,7 @@ positions in row-major order): ``pos = floor(u * total_positions)``.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import List, Optional, Sequence, Tuple
+from typing import Optional, Sequence, Tuple
 
 import numpy as np
 from scipy import ndimage
@@ -686,6 +686,7 @@ class RayConfig:
 class TerrainFiller:
     """Keeps a filled copy of a changing height map and refills only what a change touches.
 
+    The fill method is ``fill_config.method`` (Fill-Terrain by default; any baseline works).
     ``update(grid, camera_positions)`` returns a new :class:`~terrain_perception.grid.GridMap`
     with layers ``elevation`` (observed heights + filled ones), ``observed`` (1 = measured;
     never set by filling), ``upper_bound`` (line-of-sight bound, NaN = none), ``filled``
@@ -832,7 +833,7 @@ class TerrainFiller:
                 crop = elev.copy()
                 crop[refill] = np.nan
                 i0, i1, j0, j1 = 0, grid.shape[0], 0, grid.shape[1]
-            res = fill_terrain(crop, ub[i0:i1, j0:j1], self.library, self.fill_config)
+            res = fill(crop, ub[i0:i1, j0:j1], self.library, self.fill_config)
             region = refill[i0:i1, j0:j1]
             elev[i0:i1, j0:j1][region] = res.heights[region]
         # cost: recompute where heights changed, plus the reach of the cost windows

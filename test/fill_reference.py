@@ -28,7 +28,8 @@ def fill_terrain_reference(heights, upper_bound, library, w, n, sigma_cells, see
     W = np.empty((w, w))
     for a in range(w):
         for b in range(w):
-            W[a, b] = math.exp(-0.5 * (((a - r) / sigma_cells) ** 2 + ((b - r) / sigma_cells) ** 2))
+            da, db = (a - r) / sigma_cells, (b - r) / sigma_cells
+            W[a, b] = math.exp(-0.5 * (da * da + db * db))
     lib = [np.asarray(t, np.float64) for t in library]
     counts = [(t.shape[0] - w + 1) * (t.shape[1] - w + 1) for t in lib]
     total = sum(counts)

@@ -6,7 +6,7 @@ from scipy import ndimage
 
 from terrain_perception.config import make_config
 from terrain_perception.features import CostConfig, cost_map
-from terrain_perception.fill import FillConfig, TerrainFiller
+from terrain_perception.fill import FillConfig, TerrainFiller, fill
 from terrain_perception.grid import (COST, ELEVATION, FILLED, OBSERVED, UPPER_BOUND, GridMap)
 
 RES = 0.01
@@ -134,3 +134,15 @@ def test_bad_input_is_refused_and_keeps_the_state(filler, case, match):
 def test_bad_library_is_refused(library, match):
     with pytest.raises(ValueError, match=match):
         TerrainFiller(library, RES)
+
+
+@pytest.mark.parametrize('method', ['inpaint', 'shao_rows'])   # deterministic ones
+def test_the_configured_method_is_used(method):
+    truth = smooth(40, 0)
+    seen = two_holes()
+    f = TerrainFiller([smooth(50, 1)], RES, make_config(FillConfig, {'method': method,
+                                                                     'samples': 10}))
+    out = f.update(make_grid(truth, seen))
+    ref = fill(np.where(seen, truth, np.nan), None, [smooth(50, 1)],
+               make_config(FillConfig, {'method': method, 'samples': 10}))
+    np.testing.assert_allclose(out[ELEVATION], ref.heights, atol=1e-6)

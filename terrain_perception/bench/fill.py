@@ -36,9 +36,7 @@ from __future__ import annotations
 
 import argparse
 import importlib.util
-import os
 import time
-from dataclasses import replace
 from pathlib import Path
 from typing import Dict, List, Optional, Tuple
 
