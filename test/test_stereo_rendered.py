@@ -1,0 +1,61 @@
+"""The stereo pipeline on a pair rendered by the simulator (pybullet TinyRenderer over a
+textured stone course) against the depth buffer's exact disparity."""
+
+import numpy as np
+import pytest
+
+from terrain_perception.bench.stereo import (_course_scene, disparities_of_all_methods,
+                                             evaluable_mask, height_errors, render_pair,
+                                             score_disparity)
+from terrain_perception.ground_plane import camera_pitch_from_pose, fit_ground_plane
+from terrain_perception.robot_model import load_robot_model
+from terrain_perception.stereo import StereoConfig, StereoPipeline
+from terrain_perception.transforms import make_T, rpy_to_R
+
+
+@pytest.fixture(scope='module')
+def rendered():
+    frog = load_robot_model('frog')
+    stereo = frog.stereo                        # 640x480, 0.12 m baseline
+    course, padded = _course_scene('stones-15cm', 11, 0.005)
+    x0 = padded.metadata['rough_extent_xy'][0] - 0.7
+    T_world_base = make_T(rpy_to_R(0.01, np.radians(2.0), 0.05),
+                          [x0, 0.0, frog.standing_height_m])
+    T = T_world_base @ frog.T_base_camera
+    left, right, depth = render_pair('pybullet', course, padded, stereo, T, seed=11)
+    return stereo, padded, T, left, right, depth
+
+
+def test_disparity_matches_the_depth_buffer(rendered):
+    stereo, grid, T, left, right, depth = rendered
+    cfg = StereoConfig(num_disparities=112)
+    gt = stereo.depth_to_disparity(depth)
+    mask = evaluable_mask(gt, 0, 112)
+    assert mask.mean() > 0.8
+    d = StereoPipeline(cfg, stereo).disparity(left, right)
+    s = score_disparity(d, gt, mask)
+    assert s['coverage'] > 0.9
+    assert s['bad2_est'] < 0.05
+    assert s['bad2'] < 0.12
+    both = np.isfinite(d) & mask
+    err = d[both] - gt[both]
+    assert abs(np.median(err)) < 0.1          # no systematic offset between image and truth
+    assert np.mean(np.abs(err) < 1.0) > 0.9
+
+
+def test_post_processing_lowers_bad2_and_points_sit_on_the_course(rendered):
+    stereo, grid, T, left, right, depth = rendered
+    cfg = StereoConfig(num_disparities=112)
+    gt = stereo.depth_to_disparity(depth)
+    mask = evaluable_mask(gt, 0, 112)
+    scores = {m: score_disparity(d, gt, mask)
+              for m, d in disparities_of_all_methods(left, right, cfg).items()}
+    assert scores['post']['bad2'] < scores['raw']['bad2']
+    assert scores['outliers_only']['bad2_est'] < scores['raw']['bad2_est']
+    assert scores['filling_only']['coverage'] > scores['raw']['coverage']
+    frame = StereoPipeline(cfg, stereo).process(left, right)
+    err = height_errors(frame.points, T, grid)
+    assert np.median(np.abs(err)) < 0.01
+    plane = fit_ground_plane(frame.points)
+    assert abs(np.degrees(plane.pitch_rad - camera_pitch_from_pose(T))) < 1.0
+    assert abs(plane.height_m - T[2, 3]) < 0.02
