@@ -288,7 +288,27 @@ class WalkingController:
             return JointCommand(qs, np.zeros(12))
         self.status = 'walking'
         pos, vel = self._seg.joints(t - self._seg.t0)
-        return JointCommand(pos, vel)
+        return JointCommand(self._clip(pos), vel)
+
+    def preview(self, times: np.ndarray) -> JointCommand:
+        """Joint targets ``(P, 12)`` at future times [s] without advancing the controller.
+
+        Within the segment in progress they follow its spline; after its end they hold its
+        final angles (segments start and end at rest, so the next one continues from there).
+        Call after :meth:`update` for the current time.
+        """
+        times = np.asarray(times, dtype=float).reshape(-1)
+        if self._seg is None:
+            q = self._stand_q()
+            return JointCommand(np.tile(q, (len(times), 1)), np.zeros((len(times), 12)))
+        pos, vel = zip(*(self._seg.joints(t - self._seg.t0) for t in times))
+        vel = np.array(vel)
+        vel[times >= self._seg.t_end] = 0.0
+        return JointCommand(self._clip(np.array(pos)), vel)
+
+    def _clip(self, q: np.ndarray) -> np.ndarray:
+        # The IK knots respect the limits; the spline between knots may overshoot by a hair.
+        return np.clip(q, self.model.joint_lower, self.model.joint_upper)
 
     # -- outputs --------------------------------------------------------------------------
     @property

@@ -1,0 +1,1 @@
+"""walking_controller: footstep plans -> joint trajectories (see node.py)."""
