@@ -1,0 +1,662 @@
+"""The closed-loop run report: ``summary.json`` and PNG figures from what a run recorded.
+
+:class:`RunData` holds plain arrays (collected live by ``terrain-demo``'s monitor, from whatever
+nodes ran); :func:`write_report` turns it into
+
+* ``summary.json``: crossed or not, falls, distance, time, final localisation error, map height
+  RMSE on observed cells against the true terrain, mean true cost of the executed (else planned)
+  footholds, capture-to-plan latency, the state of every node, and for each figure and metric
+  either its value/file or the reason it is missing (``null`` + ``missing`` entry: never a
+  made-up number);
+* ``heightmaps.png``: true vs perceived (``/map/fine``) vs filled (``/map/filled``) heights;
+* ``footsteps.png``: the cost map with the planned and executed footsteps;
+* ``path.png``: the true path against the robot's estimate (dead reckoning re-anchored by ICP),
+  the ICP corrections marked where the estimate jumps (paper 000, Fig. 10), and the position
+  error over time.
+
+Frames: everything in ``map`` (x along the course, z up), poses as 4x4 ``T_map_base``. Times
+are simulated seconds. Nothing here talks ROS: it runs on recorded arrays.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Dict, List, Optional, Tuple
+
+import numpy as np
+
+from terrain_perception.features import CostConfig, cost_map
+from terrain_perception.grid import GridMap
+
+LEG_NAMES = ('LF', 'RF', 'LH', 'RH')
+LEG_COLOURS = ('tab:red', 'tab:green', 'tab:blue', 'tab:orange')
+
+
+@dataclass
+class CourseInfo:
+    """Where the run starts and what counts as crossed (x along the course) [m]."""
+
+    name: str
+    seed: int
+    start_x_m: float
+    rough_x0_m: float
+    rough_x1_m: float
+    finish_x_m: float        # base x at which every foot is past the rough section
+
+
+@dataclass
+class RunData:
+    """Everything a report needs; arrays may be empty when a node did not deliver.
+
+    Poses are ``(N, 4, 4)`` with their stamps ``(N,)`` [s sim]. ``plans`` holds one dict per
+    received ``/footstep_plan``: ``stamp``, ``t_recv``, ``status``, ``status_text``, ``gait``,
+    ``steps`` ``(K, 5)`` = leg, x, y, z, cost. ``joint_t``/``joint_q`` are joint states
+    ``(N,)``, ``(N, 4, 3)`` in the robot model's leg order.
+    """
+
+    course: CourseInfo
+    robot: str
+    gt_t: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    gt_T: np.ndarray = field(default_factory=lambda: np.zeros((0, 4, 4)))
+    icp_t: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    icp_T: np.ndarray = field(default_factory=lambda: np.zeros((0, 4, 4)))
+    dr_t: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    dr_T: np.ndarray = field(default_factory=lambda: np.zeros((0, 4, 4)))
+    corr_t: np.ndarray = field(default_factory=lambda: np.zeros(0))     # receipt, sim time
+    corr_T: np.ndarray = field(default_factory=lambda: np.zeros((0, 4, 4)))
+    joint_t: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    joint_q: np.ndarray = field(default_factory=lambda: np.zeros((0, 4, 3)))
+    plans: List[dict] = field(default_factory=list)
+    true_terrain: Optional[GridMap] = None
+    map_fine: Optional[GridMap] = None
+    map_filled: Optional[GridMap] = None
+    latencies_ms: List[float] = field(default_factory=list)
+    counts: Dict[str, int] = field(default_factory=dict)
+    nodes: Dict[str, dict] = field(default_factory=dict)
+    sim_time_s: float = 0.0
+    wall_time_s: float = 0.0
+    end_reason: str = ''
+    notes: List[str] = field(default_factory=list)
+
+
+# ---------------------------------------------------------------------------------------------
+# metrics
+
+
+def tilt_rad(T: np.ndarray) -> np.ndarray:
+    """Angle between the body z axis and the world z axis of poses ``(..., 4, 4)`` [rad]."""
+    return np.arccos(np.clip(T[..., 2, 2], -1.0, 1.0))
+
+
+def body_clearance(T: np.ndarray, terrain: GridMap, body_size_m) -> np.ndarray:
+    """Height of the base origin above the highest true terrain under the body footprint [m].
+
+    Samples a 5 x 3 lattice over the body's (length, width) rectangle around each pose."""
+    L, W = float(body_size_m[0]), float(body_size_m[1])
+    u, v = np.meshgrid(np.linspace(-L / 2, L / 2, 5), np.linspace(-W / 2, W / 2, 3),
+                       indexing='ij')
+    local = np.stack([u.ravel(), v.ravel(), np.zeros(u.size), np.ones(u.size)], axis=0)
+    world = np.einsum('nij,jk->nik', T, local)          # (N, 4, 15)
+    h = terrain.sample('elevation', np.moveaxis(world[:, :2, :], 1, 2))   # (N, 15)
+    h = np.where(np.isfinite(h), h, 0.0)
+    return T[:, 2, 3] - h.max(axis=1)
+
+
+def fall_mask(T: np.ndarray, terrain: Optional[GridMap], body_size_m,
+              max_tilt_rad: float = math.radians(50.0)) -> np.ndarray:
+    """True where the robot lies fallen: tilted past ``max_tilt_rad`` or its belly on the
+    terrain (base origin less than half the body height + 1 cm above the highest terrain
+    under the body)."""
+    fallen = tilt_rad(T) > max_tilt_rad
+    if terrain is not None and len(T):
+        fallen |= body_clearance(T, terrain, body_size_m) < 0.5 * float(body_size_m[2]) + 0.01
+    return fallen
+
+
+def count_falls(t: np.ndarray, fallen: np.ndarray, min_duration_s: float = 0.5) -> int:
+    """Number of fallen episodes lasting at least ``min_duration_s``."""
+    n, start = 0, None
+    for k in range(len(t)):
+        if fallen[k] and start is None:
+            start = t[k]
+        elif not fallen[k] and start is not None:
+            n += int(t[k - 1] - start >= min_duration_s)
+            start = None
+    if start is not None:
+        n += int(t[-1] - start >= min_duration_s)
+    return n
+
+
+def interp_poses(t_src: np.ndarray, T_src: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """Nearest-stamp lookup of poses (sources sampled densely enough for evaluation)."""
+    if len(t_src) == 0:
+        return np.full((len(t), 4, 4), np.nan)
+    k = np.clip(np.searchsorted(t_src, t), 1, max(len(t_src) - 1, 1))
+    k0 = np.maximum(k - 1, 0)
+    k = np.where(np.abs(t_src[np.minimum(k, len(t_src) - 1)] - t)
+                 < np.abs(t_src[k0] - t), np.minimum(k, len(t_src) - 1), k0)
+    return T_src[k]
+
+
+def estimated_path(d: RunData) -> Tuple[np.ndarray, np.ndarray, str]:
+    """The robot's own pose estimate over time: dead reckoning re-anchored by the latest ICP
+    correction ``T_map_odom`` (paper 000 Fig. 10), else the ICP poses. Returns (t, T, label)."""
+    if len(d.dr_t):
+        T = d.dr_T.copy()
+        if len(d.corr_t):
+            k = np.searchsorted(d.corr_t, d.dr_t, side='right') - 1
+            has = k >= 0
+            T[has] = np.einsum('nij,njk->nik', d.corr_T[k[has]], d.dr_T[has])
+        label = ('dead reckoning + ICP corrections' if len(d.corr_t)
+                 else 'dead reckoning (no ICP correction received)')
+        return d.dr_t, T, label
+    if len(d.icp_t):
+        return d.icp_t, d.icp_T, 'ICP pose'
+    return np.zeros(0), np.zeros((0, 4, 4)), ''
+
+
+def sample_cell_mean(terrain: GridMap, grid: GridMap, layer: str = 'elevation') -> np.ndarray:
+    """Mean of ``terrain`` over each cell of ``grid`` (4 x 4 sub-samples per cell), (nx, ny)."""
+    xs, ys = grid.cell_centers()
+    offs = (np.arange(4) + 0.5) / 4.0 - 0.5
+    acc = np.zeros(grid.shape, np.float64)
+    for ox in offs:
+        for oy in offs:
+            xy = np.stack(np.meshgrid(xs + ox * grid.resolution_m, ys + oy * grid.resolution_m,
+                                      indexing='ij'), axis=-1)
+            acc += terrain.sample(layer, xy)
+    return (acc / offs.size ** 2).astype(np.float32)
+
+
+def observed_mask(grid: GridMap) -> np.ndarray:
+    """Cells measured by a sensor: the ``observed`` layer when present, else finite heights."""
+    elev = grid['elevation']
+    if 'observed' in grid.layers:
+        return (grid['observed'] > 0.5) & np.isfinite(elev)
+    return np.isfinite(elev)
+
+
+def map_rmse(grid: GridMap, terrain: GridMap, mask: np.ndarray) -> Tuple[float, int]:
+    """Height RMSE [m] of ``grid``'s elevation against the true terrain on ``mask`` cells."""
+    truth = sample_cell_mean(terrain, grid)
+    ok = mask & np.isfinite(truth) & np.isfinite(grid['elevation'])
+    n = int(ok.sum())
+    if n == 0:
+        return float('nan'), 0
+    err = grid['elevation'][ok] - truth[ok]
+    return float(np.sqrt(np.mean(err.astype(np.float64) ** 2))), n
+
+
+def true_cost_grid(terrain: GridMap, cost_cfg: CostConfig) -> GridMap:
+    """The foothold cost computed on the true terrain (same function as the fill node)."""
+    out = GridMap(terrain.resolution_m, terrain.origin_xy, terrain.shape,
+                  {'elevation': terrain['elevation']})
+    out['cost'] = cost_map(terrain['elevation'], terrain.resolution_m, cost_cfg)
+    return out
+
+
+def executed_footholds(joint_t: np.ndarray, joint_q: np.ndarray, gt_t: np.ndarray,
+                       gt_T: np.ndarray, model, speed_mps: float = 0.03,
+                       min_stance_s: float = 0.15, min_move_m: float = 0.01) -> np.ndarray:
+    """Where the feet actually stood: ``(K, 4)`` = leg, x, y, z (contact point, ``map``) [m].
+
+    Foot centres from forward kinematics on the joint states and the true base pose; a stance
+    is a run of samples with the foot slower than ``speed_mps`` lasting ``min_stance_s``; a new
+    foothold is counted when the stance position moved ``min_move_m`` from the leg's last one.
+    """
+    from terrain_perception.kinematics import forward
+    if len(joint_t) < 3 or len(gt_t) < 3:
+        return np.zeros((0, 4))
+    T = interp_poses(gt_t, gt_T, joint_t)
+    feet_b = forward(model, joint_q)                               # (N, 4, 3)
+    feet = np.einsum('nij,nkj->nki', T[:, :3, :3], feet_b) + T[:, None, :3, 3]
+    dt = np.gradient(joint_t)
+    dt = np.where(dt > 1e-6, dt, 1e-6)
+    speed = np.linalg.norm(np.gradient(feet, axis=0), axis=-1) / dt[:, None]   # (N, 4)
+    out = []
+    for leg in range(4):
+        still = speed[:, leg] < speed_mps
+        last = None
+        k = 0
+        n = len(joint_t)
+        while k < n:
+            if not still[k]:
+                k += 1
+                continue
+            j = k
+            while j + 1 < n and still[j + 1]:
+                j += 1
+            if joint_t[j] - joint_t[k] >= min_stance_s:
+                p = np.median(feet[k:j + 1, leg], axis=0)
+                p[2] -= model.foot_radius_m
+                if last is None or np.linalg.norm(p[:2] - last[:2]) >= min_move_m:
+                    out.append([leg, *p])
+                    last = p
+            k = j + 1
+    return np.asarray(out, dtype=np.float64).reshape(-1, 4)
+
+
+def planned_footholds(plans: List[dict]) -> np.ndarray:
+    """Every footstep of every OK plan, ``(K, 6)`` = leg, x, y, z, cost, step_index."""
+    rows = [np.column_stack([p['steps'], np.arange(len(p['steps']))])
+            for p in plans if len(p['steps'])]
+    return np.concatenate(rows) if rows else np.zeros((0, 6))
+
+
+def committed_footholds(plans: List[dict]) -> np.ndarray:
+    """The first footstep of each plan (the one the controller executes next), de-duplicated:
+    ``(K, 5)`` = leg, x, y, z, cost."""
+    seen, rows = set(), []
+    for p in plans:
+        if not len(p['steps']):
+            continue
+        s = p['steps'][0]
+        key = (int(s[0]), round(float(s[1]), 3), round(float(s[2]), 3))
+        if key not in seen:
+            seen.add(key)
+            rows.append(s)
+    return np.asarray(rows, dtype=np.float64).reshape(-1, 5)
+
+
+def _finite(v) -> Optional[float]:
+    return None if v is None or not np.isfinite(v) else float(v)
+
+
+def compute_summary(d: RunData, model=None, cost_cfg: CostConfig = CostConfig()) -> dict:
+    """The numbers of ``summary.json``; each unavailable metric is None with a reason in
+    ``missing``."""
+    c = d.course
+    missing: Dict[str, str] = {}
+    s: dict = {
+        'robot': d.robot, 'course': c.name, 'seed': c.seed,
+        'end_reason': d.end_reason,
+        'sim_time_s': round(d.sim_time_s, 3), 'wall_time_s': round(d.wall_time_s, 1),
+        'real_time_factor': (round(d.sim_time_s / d.wall_time_s, 3)
+                             if d.wall_time_s > 0 else None),
+        'course_geometry_m': {'start_x': c.start_x_m, 'rough_x0': c.rough_x0_m,
+                              'rough_x1': c.rough_x1_m, 'finish_x': c.finish_x_m},
+    }
+    body = (model.body_size_m if model is not None else np.array([0.24, 0.10, 0.06]))
+    # --- motion (ground truth)
+    if len(d.gt_t):
+        x = d.gt_T[:, 0, 3]
+        fallen = fall_mask(d.gt_T, d.true_terrain, body)
+        falls = count_falls(d.gt_t, fallen)
+        crossed_k = np.nonzero(x >= c.finish_x_m)[0]
+        first_fall = np.nonzero(fallen)[0]
+        crossed = bool(len(crossed_k)) and (not len(first_fall)
+                                            or crossed_k[0] < first_fall[0])
+        s['crossed'] = crossed
+        s['falls'] = falls
+        s['distance_m'] = round(float(x[-1] - c.start_x_m), 4)
+        s['max_distance_m'] = round(float(x.max() - c.start_x_m), 4)
+        s['distance_to_cross_m'] = round(c.finish_x_m - c.start_x_m, 4)
+        path = np.linalg.norm(np.diff(d.gt_T[:, :3, 3], axis=0), axis=1).sum()
+        s['path_length_m'] = round(float(path), 4)
+        s['time_to_cross_s'] = (round(float(d.gt_t[crossed_k[0]] - d.gt_t[0]), 3)
+                                if crossed else None)
+        if not crossed:
+            missing['time_to_cross_s'] = 'did not cross'
+        dur = d.gt_t[-1] - d.gt_t[0]
+        s['mean_speed_mps'] = round(float((x[-1] - x[0]) / dur), 4) if dur > 0 else None
+        s['max_tilt_deg'] = round(float(np.degrees(tilt_rad(d.gt_T).max())), 2)
+    else:
+        for k in ('crossed', 'falls', 'distance_m', 'time_to_cross_s', 'mean_speed_mps'):
+            s[k] = None
+            missing[k] = 'no /ground_truth/odom received'
+    # --- localisation
+    t_est, T_est, label = estimated_path(d)
+    s['estimate_source'] = label or None
+    if len(t_est) and len(d.gt_t):
+        T_true = interp_poses(d.gt_t, d.gt_T, t_est[-1:])[0]
+        s['final_localisation_error_m'] = round(
+            float(np.linalg.norm(T_est[-1, :3, 3] - T_true[:3, 3])), 5)
+        err = np.linalg.norm(T_est[:, :3, 3] - interp_poses(d.gt_t, d.gt_T, t_est)[:, :3, 3],
+                             axis=1)
+        s['rms_localisation_error_m'] = round(float(np.sqrt(np.mean(err ** 2))), 5)
+    else:
+        s['final_localisation_error_m'] = None
+        missing['final_localisation_error_m'] = (
+            'no /odom/dead_reckoning and no /icp/pose received' if not len(t_est)
+            else 'no /ground_truth/odom received')
+    if len(d.icp_t) and len(d.gt_t):
+        T_true = interp_poses(d.gt_t, d.gt_T, d.icp_t[-1:])[0]
+        s['final_icp_pose_error_m'] = round(
+            float(np.linalg.norm(d.icp_T[-1, :3, 3] - T_true[:3, 3])), 5)
+    s['icp_corrections'] = int(len(d.corr_t))
+    # --- map
+    if d.map_fine is not None and d.true_terrain is not None:
+        rmse, n = map_rmse(d.map_fine, d.true_terrain, observed_mask(d.map_fine))
+        s['map_rmse_observed_m'] = _finite(rmse)
+        s['map_observed_cells'] = n
+        if n == 0:
+            missing['map_rmse_observed_m'] = '/map/fine has no observed cell on the course'
+    else:
+        s['map_rmse_observed_m'] = None
+        missing['map_rmse_observed_m'] = ('no /map/fine received' if d.map_fine is None
+                                          else 'no /ground_truth/terrain received')
+    if d.map_filled is not None and d.true_terrain is not None \
+            and 'filled' in d.map_filled.layers:
+        rmse, n = map_rmse(d.map_filled, d.true_terrain, d.map_filled['filled'] > 0.5)
+        s['filled_rmse_m'] = _finite(rmse)
+        s['filled_cells'] = n
+    # --- footholds
+    executed = (executed_footholds(d.joint_t, d.joint_q, d.gt_t, d.gt_T, model)
+                if model is not None else np.zeros((0, 4)))
+    committed = committed_footholds(d.plans)
+    s['plans_received'] = len(d.plans)
+    s['plans_ok'] = int(sum(1 for p in d.plans if len(p['steps'])))
+    s['executed_footholds'] = int(len(executed))
+    s['planned_footholds'] = int(len(committed))
+    if d.true_terrain is not None and (len(executed) or len(committed)):
+        truth = true_cost_grid(d.true_terrain, cost_cfg)
+        src, pts = (('executed', executed[:, 1:3]) if len(executed)
+                    else ('planned', committed[:, 1:3]))
+        cost = truth.sample('cost', pts)
+        s['mean_true_foothold_cost'] = _finite(float(np.nanmean(cost)))
+        s['foothold_cost_source'] = src
+        if len(committed):
+            s['mean_true_cost_planned'] = _finite(
+                float(np.nanmean(truth.sample('cost', committed[:, 1:3]))))
+            s['mean_believed_cost_planned'] = _finite(float(np.nanmean(committed[:, 4])))
+    else:
+        s['mean_true_foothold_cost'] = None
+        missing['mean_true_foothold_cost'] = (
+            'no footholds: no executed steps and no plan with footsteps'
+            if d.true_terrain is not None else 'no /ground_truth/terrain received')
+    # --- latency
+    if d.latencies_ms:
+        lat = np.asarray(d.latencies_ms)
+        s['capture_to_plan_ms_median'] = round(float(np.median(lat)), 1)
+        s['capture_to_plan_ms_p95'] = round(float(np.percentile(lat, 95)), 1)
+    else:
+        s['capture_to_plan_ms_median'] = None
+        missing['capture_to_plan_ms_median'] = 'no plan matched a captured image stamp'
+    s['messages'] = dict(sorted(d.counts.items()))
+    s['nodes'] = d.nodes
+    s['complete_graph'] = bool(d.nodes) and all(
+        n.get('state') == 'ran' for n in d.nodes.values())
+    s['missing'] = missing
+    s['notes'] = list(d.notes)
+    return s
+
+
+# ---------------------------------------------------------------------------------------------
+# figures
+
+
+def _extent(g: GridMap):
+    x0, y0 = g.origin_xy
+    lx, ly = g.length_xy
+    return [x0, x0 + lx, y0, y0 + ly]
+
+
+def _show(ax, g: Optional[GridMap], layer: str, title: str, vmin=None, vmax=None,
+          cmap='terrain', why: str = ''):
+    if g is None or layer not in g.layers:
+        ax.text(0.5, 0.5, f'no data\n{why}', ha='center', va='center', transform=ax.transAxes,
+                fontsize=10, color='0.3', wrap=True)
+        ax.set_title(title + ' (missing)')
+        return None
+    im = ax.imshow(g[layer].T, origin='lower', extent=_extent(g), cmap=cmap, vmin=vmin,
+                   vmax=vmax, interpolation='nearest', aspect='equal')
+    ax.set_title(title)
+    ax.set_xlabel('x [m]')
+    ax.set_ylabel('y [m]')
+    return im
+
+
+def _course_lines(ax, c: CourseInfo) -> None:
+    for x, ls in ((c.rough_x0_m, ':'), (c.rough_x1_m, ':'), (c.finish_x_m, '--')):
+        ax.axvline(x, color='k', lw=0.8, ls=ls)
+
+
+def _crop(ax, d: RunData) -> None:
+    """View: the course region the robot walked plus the map's extent, y within +-0.5 m."""
+    xs = [d.course.start_x_m - 0.3, d.course.finish_x_m + 0.3]
+    for g in (d.map_fine, d.map_filled):
+        if g is not None:
+            e = _extent(g)
+            xs += [e[0], e[1]]
+    ax.set_xlim(min(xs), max(xs))
+    ax.set_ylim(-0.5, 0.5)
+
+
+def fig_heightmaps(d: RunData, path: Path, why: Dict[str, str]) -> List[str]:
+    """True vs perceived vs filled heights on one colour scale; returns missing panels."""
+    import matplotlib.pyplot as plt
+    missing = []
+    t = d.true_terrain
+    vmax = float(np.nanmax(t['elevation'])) if t is not None else None
+    fig, axes = plt.subplots(3, 1, figsize=(11, 10), constrained_layout=True)
+    im = _show(axes[0], t, 'elevation', 'true terrain (/ground_truth/terrain)', 0.0, vmax,
+               why=why.get('true', ''))
+    _show(axes[1], d.map_fine, 'elevation', 'perceived: /map/fine (observed cells only)',
+          0.0, vmax, why=why.get('fine', ''))
+    _show(axes[2], d.map_filled, 'elevation', 'filled: /map/filled (Fill-Terrain)', 0.0, vmax,
+          why=why.get('filled', ''))
+    for name, g in (('true', t), ('perceived', d.map_fine), ('filled', d.map_filled)):
+        if g is None:
+            missing.append(name)
+    if d.map_filled is not None and 'filled' in d.map_filled.layers:
+        f = d.map_filled['filled'] > 0.5
+        axes[2].contour(*np.meshgrid(*d.map_filled.cell_centers(), indexing='ij'), f,
+                        levels=[0.5], colors='m', linewidths=0.6)
+        axes[2].set_title(axes[2].get_title() + '; magenta: filled-cell border')
+    if len(d.gt_t):
+        for ax in axes:
+            ax.plot(d.gt_T[:, 0, 3], d.gt_T[:, 1, 3], 'k-', lw=1.0, label='true base path')
+    for ax in axes:
+        _course_lines(ax, d.course)
+        _crop(ax, d)
+    if im is not None:
+        fig.colorbar(im, ax=axes, label='height [m]', shrink=0.6)
+    fig.suptitle(f'{d.robot} on {d.course.name} (seed {d.course.seed}): heights  '
+                 '(dotted: rough section, dashed: finish line)')
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+    return missing
+
+
+def fig_footsteps(d: RunData, path: Path, executed: np.ndarray, cost_cfg: CostConfig,
+                  why: Dict[str, str]) -> List[str]:
+    """The cost map with planned (small) and executed (large) footholds per leg."""
+    import matplotlib.pyplot as plt
+    missing = []
+    fig, ax = plt.subplots(figsize=(12, 5), constrained_layout=True)
+    g, title = d.map_filled, 'cost layer of /map/filled'
+    if g is None or 'cost' not in g.layers:
+        missing.append('perceived cost map')
+        g = true_cost_grid(d.true_terrain, cost_cfg) if d.true_terrain is not None else None
+        title = ('TRUE cost (no /map/filled cost layer: ' + why.get('filled', 'missing') + ')'
+                 if g is not None else 'cost')
+    vmax = float(np.nanpercentile(g['cost'], 99)) if g is not None and \
+        np.isfinite(g['cost']).any() else 1.0
+    im = _show(ax, g, 'cost', title, 0.0, vmax, cmap='viridis', why=why.get('filled', ''))
+    if im is not None:
+        fig.colorbar(im, ax=ax, label='foothold cost [-]', shrink=0.8)
+    planned = planned_footholds(d.plans)
+    if not len(planned):
+        missing.append('planned footsteps')
+    if not len(executed):
+        missing.append('executed footsteps')
+    for leg in range(4):
+        p = planned[planned[:, 0] == leg]
+        if len(p):
+            ax.scatter(p[:, 1], p[:, 2], s=8, marker='x', color=LEG_COLOURS[leg], alpha=0.5,
+                       lw=0.8, label=f'planned {LEG_NAMES[leg]}')
+        e = executed[executed[:, 0] == leg] if len(executed) else executed
+        if len(e):
+            ax.scatter(e[:, 1], e[:, 2], s=40, marker='o', facecolors='none',
+                       edgecolors=LEG_COLOURS[leg], lw=1.5, label=f'executed {LEG_NAMES[leg]}')
+    if len(d.gt_t):
+        ax.plot(d.gt_T[:, 0, 3], d.gt_T[:, 1, 3], 'w-', lw=0.8, label='true base path')
+    _course_lines(ax, d.course)
+    _crop(ax, d)
+    ax.set_ylim(-0.3, 0.3)
+    if missing:
+        ax.text(0.01, 0.02, 'missing: ' + ', '.join(missing), transform=ax.transAxes,
+                color='r', fontsize=9, va='bottom')
+    ax.legend(loc='upper left', fontsize=7, ncol=4)
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+    return missing
+
+
+def fig_path(d: RunData, path: Path, why: Dict[str, str]) -> List[str]:
+    """Paper 000 Fig. 10: the map with the true and the estimated path; ICP corrections (the
+    jumps of the estimate) marked; below, the position error over time."""
+    import matplotlib.pyplot as plt
+    missing = []
+    t_est, T_est, label = estimated_path(d)
+    fig, (ax, ax2) = plt.subplots(2, 1, figsize=(11, 8), constrained_layout=True,
+                                  gridspec_kw={'height_ratios': [2, 1]})
+    bg = next((g for g in (d.map_filled, d.map_fine, d.true_terrain) if g is not None), None)
+    if bg is not None:
+        ax.imshow(bg['elevation'].T, origin='lower', extent=_extent(bg), cmap='gray',
+                  interpolation='nearest', aspect='equal', alpha=0.8)
+    if len(d.gt_t):
+        ax.plot(d.gt_T[:, 0, 3], d.gt_T[:, 1, 3], 'g-', lw=1.5, label='true path')
+    else:
+        missing.append('true path')
+    if len(t_est):
+        ax.plot(T_est[:, 0, 3], T_est[:, 1, 3], 'b.-', ms=2, lw=0.8, label=f'estimate: {label}')
+    else:
+        missing.append('estimated path')
+    if len(d.corr_t) and len(d.dr_t):
+        # Where the estimate jumps: before (previous anchor) -> after (new anchor).
+        for k, tc in enumerate(d.corr_t):
+            Tdr = interp_poses(d.dr_t, d.dr_T, np.array([tc]))[0]
+            before = (d.corr_T[k - 1] if k > 0 else np.eye(4)) @ Tdr
+            after = d.corr_T[k] @ Tdr
+            ax.plot([before[0, 3], after[0, 3]], [before[1, 3], after[1, 3]], 'r-', lw=1.5)
+            ax.plot(after[0, 3], after[1, 3], 'r+', ms=8,
+                    label='ICP correction' if k == 0 else None)
+    elif len(d.icp_t):
+        ax.plot(d.icp_T[:, 0, 3], d.icp_T[:, 1, 3], 'r+', ms=8, label='ICP pose')
+    else:
+        missing.append('ICP corrections')
+    _course_lines(ax, d.course)
+    xs = [d.course.start_x_m - 0.2, d.course.finish_x_m + 0.2]
+    if len(d.gt_t):
+        xs += [d.gt_T[:, 0, 3].min() - 0.2, d.gt_T[:, 0, 3].max() + 0.2]
+    ax.set_xlim(min(xs), max(xs))
+    ax.set_ylim(-0.3, 0.3)
+    ax.set_xlabel('x [m]')
+    ax.set_ylabel('y [m]')
+    ax.set_title('true vs estimated base path (paper 000 Fig. 10 style); '
+                 'red: ICP corrections' + ('' if not missing else
+                                           '  [missing: ' + ', '.join(missing) + ']'))
+    ax.legend(loc='upper left', fontsize=8)
+    if len(t_est) and len(d.gt_t):
+        err = np.linalg.norm(T_est[:, :3, 3] - interp_poses(d.gt_t, d.gt_T, t_est)[:, :3, 3],
+                             axis=1)
+        ax2.plot(t_est, err * 1000.0, 'b-', lw=1, label=label)
+        if len(d.icp_t):
+            e2 = np.linalg.norm(d.icp_T[:, :3, 3]
+                                - interp_poses(d.gt_t, d.gt_T, d.icp_t)[:, :3, 3], axis=1)
+            ax2.plot(d.icp_t, e2 * 1000.0, 'r+', label='ICP pose')
+        for tc in d.corr_t:
+            ax2.axvline(tc, color='r', lw=0.4, alpha=0.5)
+        ax2.legend(fontsize=8)
+    else:
+        ax2.text(0.5, 0.5, 'no estimate to compare\n' + why.get('estimate', ''),
+                 ha='center', va='center', transform=ax2.transAxes, color='0.3')
+    ax2.set_xlabel('simulated time [s]')
+    ax2.set_ylabel('position error [mm]')
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+    return missing
+
+
+def write_report(d: RunData, run_dir: Path, model=None,
+                 cost_cfg: CostConfig = CostConfig()) -> dict:
+    """Write ``summary.json`` and the figures into ``run_dir``; return the summary."""
+    import matplotlib
+    matplotlib.use('Agg')
+    run_dir = Path(run_dir)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    summary = compute_summary(d, model, cost_cfg)
+    why = {'true': 'no /ground_truth/terrain received',
+           'fine': summary['missing'].get('map_rmse_observed_m', 'no /map/fine received'),
+           'filled': 'no /map/filled received',
+           'estimate': summary['missing'].get('final_localisation_error_m', '')}
+    node_why = _node_reasons(d.nodes)
+    for k, node in (('fine', 'icp_mapper'), ('filled', 'terrain_fill'),
+                    ('estimate', 'walking_controller')):
+        if node in node_why:
+            why[k] = f'{why[k]} ({node}: {node_why[node]})'
+    executed = (executed_footholds(d.joint_t, d.joint_q, d.gt_t, d.gt_T, model)
+                if model is not None else np.zeros((0, 4)))
+    figures = {}
+    for name, fn in (('heightmaps.png', lambda p: fig_heightmaps(d, p, why)),
+                     ('footsteps.png', lambda p: fig_footsteps(d, p, executed, cost_cfg, why)),
+                     ('path.png', lambda p: fig_path(d, p, why))):
+        p = run_dir / name
+        try:
+            miss = fn(p)
+            figures[name] = {'file': str(p), 'missing_panels': miss}
+        except Exception as exc:  # a figure failing must not lose the summary
+            figures[name] = {'file': None, 'error': f'{type(exc).__name__}: {exc}'}
+    summary['figures'] = figures
+    (run_dir / 'summary.json').write_text(json.dumps(summary, indent=2, default=_jsonable))
+    return summary
+
+
+def _node_reasons(nodes: Dict[str, dict]) -> Dict[str, str]:
+    return {name: (n.get('reason') or n.get('state', '')) for name, n in nodes.items()
+            if n.get('state') != 'ran'}
+
+
+def _jsonable(v):
+    if isinstance(v, (np.integer,)):
+        return int(v)
+    if isinstance(v, (np.floating,)):
+        return float(v)
+    if isinstance(v, np.ndarray):
+        return v.tolist()
+    if isinstance(v, Path):
+        return str(v)
+    raise TypeError(f'not JSON-serialisable: {type(v).__name__}')
+
+
+def format_summary(s: dict) -> str:
+    """A short human-readable summary (what ``terrain-demo`` prints at the end)."""
+    def f(key, fmt='{:.3f}', unit=''):
+        v = s.get(key)
+        if v is None:
+            return f'n/a ({s["missing"].get(key, "missing")})'
+        return fmt.format(v) + unit
+    lines = [
+        f'robot {s["robot"]} on {s["course"]} seed {s["seed"]}: '
+        f'{"CROSSED" if s.get("crossed") else "NOT crossed"} '
+        f'(ended: {s["end_reason"]})',
+        f'  distance       {f("distance_m", "{:.3f}", " m")} of '
+        f'{s.get("distance_to_cross_m", float("nan")):.2f} m; falls {s.get("falls")}',
+        f'  sim time       {s["sim_time_s"]:.1f} s in {s["wall_time_s"]:.0f} s wall '
+        f'(RTF {s["real_time_factor"]})',
+        f'  localisation   final error {f("final_localisation_error_m", "{:.4f}", " m")}; '
+        f'{s.get("icp_corrections", 0)} ICP corrections',
+        f'  map RMSE       {f("map_rmse_observed_m", "{:.4f}", " m")} on observed cells',
+        f'  footholds      mean true cost {f("mean_true_foothold_cost", "{:.4f}")} '
+        f'({s.get("foothold_cost_source", "-")}); plans {s.get("plans_ok")}/'
+        f'{s.get("plans_received")} with steps',
+        f'  latency        capture-to-plan median '
+        f'{f("capture_to_plan_ms_median", "{:.0f}", " ms")}',
+    ]
+    bad = {k: v for k, v in s.get('nodes', {}).items() if v.get('state') != 'ran'}
+    if bad:
+        lines.append('  nodes NOT ok:  ' + '; '.join(
+            f'{k}: {v.get("state")}{" - " + v["reason"] if v.get("reason") else ""}'
+            for k, v in bad.items()))
+    else:
+        lines.append('  nodes          all ran to the end')
+    for name, fig in s.get('figures', {}).items():
+        if fig.get('file') is None:
+            lines.append(f'  figure {name}: NOT written ({fig.get("error")})')
+        elif fig.get('missing_panels'):
+            lines.append(f'  figure {name}: missing {", ".join(fig["missing_panels"])}')
+    return '\n'.join(lines)
