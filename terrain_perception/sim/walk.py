@@ -66,7 +66,8 @@ class WalkResult:
 
     Attributes:
         sim_time_s: simulated time until the plan was done and the robot stood still.
-        fell: base tilted more than 30 deg or touched the ground with a non-foot link.
+        fell: base tilted more than 30 deg or the body link touched the ground.
+        extra: ``leg_ground_steps``: checks in which a thigh or shank touched the ground.
         T_start, T_end: simulated base poses (world) at the start and end.
         T_end_desired: controller's dead-reckoning pose at the end (odom = world here).
         foot_errors_m: horizontal distance between each landed foot's contact point and its
@@ -96,6 +97,122 @@ class WalkResult:
     extra: dict = field(default_factory=dict)
 
 
+class WalkRunner:
+    """A controller driving a robot in an existing world, footstep chunk after chunk.
+
+    ``run(legs, positions, gait)`` executes one chunk (the controller keeps its state between
+    chunks, like a receding-horizon plan being replaced); ``result()`` summarises everything
+    run so far. The controller's odom frame starts at the simulated base pose, so odom = world
+    (no drift correction: dead reckoning along the desired trajectory only). Falls (tilt over
+    30 deg or the body touching ``ground_id``), non-foot ground contacts and the COG margin are
+    checked every ``check_every`` physics steps; contacts with ``obstacle_id`` at every step.
+    """
+
+    def __init__(self, client, robot: SimRobot, config: Optional[WalkingConfig] = None,
+                 dt_s: float = 1.0 / 500.0, height: gaitlib.HeightFn = None,
+                 record_com: bool = False, obstacle_id: Optional[int] = None,
+                 ground_id: Optional[int] = None, check_every: int = 5) -> None:
+        self.client, self.robot, self.dt_s = client, robot, dt_s
+        cfg = config or WalkingConfig(plan_timeout_s=1e6)
+        self.controller = WalkingController(robot.model, cfg, height=height)
+        self.T_start = robot.base_pose()
+        q, dq, _ = robot.joint_states()
+        self.controller.reset(0.0, q, self.T_start)
+        self.record_com, self.obstacle_id, self.ground_id = record_com, obstacle_id, ground_id
+        self.check_every = check_every
+        self.t = 0.0
+        self.foot_err: list = []
+        self.min_margin, self.max_tilt, self.fell = np.inf, 0.0, False
+        self.swing_hits = self.leg_hits = self.leg_ground_steps = 0
+        self._queue: list = []
+        self._targets: dict = {}
+        self._prev = None
+        self._masses = link_masses(client, robot)
+        self._n = 0
+
+    def run(self, legs: np.ndarray, positions: np.ndarray, gait: str = 'walk',
+            max_time_s: float = 300.0, on_step: Optional[Callable[[float], None]] = None
+            ) -> bool:
+        """Execute footsteps (world contact points) until done, a fall or ``max_time_s`` of
+        simulated time for this chunk; True when every footstep was executed."""
+        ctl, robot, client = self.controller, self.robot, self.client
+        legs = np.asarray(legs, int).reshape(-1)
+        positions = np.asarray(positions, float).reshape(-1, 3)
+        ctl.set_footsteps(legs, positions, gait, self.t)
+        self._queue = list(zip(legs.tolist(), positions))
+        done_before = ctl.steps_done
+        t_end = self.t + max_time_s
+        step_simulation = client.stepSimulation
+        t_chunk = self.t
+        while self.t < t_end and not self.fell:
+            q, dq, _ = robot.joint_states()
+            cmd = ctl.update(self.t, q, dq)
+            robot.set_joint_targets(cmd.positions, dq=cmd.velocities)
+            step_simulation()
+            self.t += self.dt_s
+            self._n += 1
+            check = self._n % self.check_every == 0
+            if on_step is not None:
+                on_step(self.t)
+            self._track(ctl.phase, check)
+            if ctl.phase is None and ctl.pending_steps == 0 and self.t > t_chunk + 0.05:
+                break
+        return ctl.steps_done - done_before == len(legs)
+
+    def _track(self, seg, check: bool) -> None:
+        robot, client, prev = self.robot, self.client, self._prev
+        if prev is not None and seg != prev and prev.kind == 'swing':
+            feet = robot.foot_positions_world()
+            for leg in prev.legs:
+                tgt = self._targets.pop(leg, None)
+                if tgt is not None:
+                    self.foot_err.append(float(np.linalg.norm(feet[leg, :2] - tgt[:2])))
+        if seg is not None and seg != prev and seg.kind == 'swing':
+            for leg in seg.legs:
+                if self._queue:
+                    self._targets[leg] = self._queue.pop(0)[1]
+        self._prev = seg
+        if check:
+            tilt = robot.base_tilt_deg()
+            self.max_tilt = max(self.max_tilt, tilt)
+            if self.ground_id is not None:
+                pts = client.getContactPoints(bodyA=robot.body_id, bodyB=self.ground_id)
+                feet = set(int(i) for i in robot.foot_links)
+                if any(p[3] == -1 for p in pts):
+                    self.fell = True
+                if any(p[3] not in feet and p[3] != -1 for p in pts):
+                    self.leg_ground_steps += 1
+            if tilt > 30.0:
+                self.fell = True
+        if seg is not None and seg.kind == 'swing':
+            tau = self.t - seg.t0
+            if self.record_com and len(seg.legs) == 1 and check:
+                stance = [k for k in range(4) if k not in seg.legs]
+                feet = robot.foot_positions_world()
+                com = com_world(client, robot, self._masses)
+                self.min_margin = min(self.min_margin, float(gaitlib.support_margin(
+                    com[:2], feet[stance, :2])))
+            if self.obstacle_id is not None and 0.2 * seg.duration < tau < 0.8 * seg.duration:
+                for leg in seg.legs:
+                    if client.getContactPoints(bodyA=robot.body_id, bodyB=self.obstacle_id,
+                                               linkIndexA=int(robot.foot_links[leg])):
+                        self.swing_hits += 1
+        if self.obstacle_id is not None and robot.non_foot_contacts(self.obstacle_id):
+            self.leg_hits += 1
+
+    def result(self) -> WalkResult:
+        ctl = self.controller
+        return WalkResult(sim_time_s=self.t, fell=self.fell, T_start=self.T_start,
+                          T_end=self.robot.base_pose(), T_end_desired=ctl.odom_pose,
+                          foot_errors_m=np.array(self.foot_err),
+                          min_com_margin_m=(self.min_margin if np.isfinite(self.min_margin)
+                                            else np.nan),
+                          max_tilt_deg=self.max_tilt, steps_done=ctl.steps_done,
+                          controller_error=ctl.last_error, swing_hits=self.swing_hits,
+                          leg_hits=self.leg_hits,
+                          extra={'leg_ground_steps': self.leg_ground_steps})
+
+
 def walk(client, robot: SimRobot, legs: np.ndarray, positions: np.ndarray, gait: str = 'walk',
          config: Optional[WalkingConfig] = None, dt_s: float = 1.0 / 500.0,
          max_time_s: float = 300.0, height: gaitlib.HeightFn = None,
@@ -103,76 +220,8 @@ def walk(client, robot: SimRobot, legs: np.ndarray, positions: np.ndarray, gait:
          ground_id: Optional[int] = None,
          on_step: Optional[Callable[[float], None]] = None,
          check_every: int = 5) -> WalkResult:
-    """Execute footsteps (world frame contact points) with a fresh controller; see WalkResult.
-
-    The controller's odom frame is initialised at the simulated start pose, so odom = world
-    (no drift correction is applied: dead reckoning along the desired trajectory only).
-    Falls, non-foot ground contacts and the COG margin are checked every ``check_every``
-    physics steps (contacts with ``obstacle_id`` at every step).
-    """
-    model = robot.model
-    cfg = config or WalkingConfig(plan_timeout_s=max_time_s + 1.0)
-    ctl = WalkingController(model, cfg, height=height)
-    T_start = robot.base_pose()
-    q, dq, _ = robot.joint_states()
-    ctl.reset(0.0, q, T_start)
-    ctl.set_footsteps(legs, positions, gait, 0.0)
-    targets = {}
-    order = list(zip(np.asarray(legs, int).tolist(), np.asarray(positions, float)))
-    foot_err, t, min_margin, max_tilt, fell, hits = [], 0.0, np.inf, 0.0, False, 0
-    leg_hits = 0
-    prev_seg = None
-    step_i = 0
-    masses = link_masses(client, robot)
-    n_step = 0
-    step_simulation = client.stepSimulation
-    while t < max_time_s:
-        q, dq, _ = robot.joint_states()
-        cmd = ctl.update(t, q, dq)
-        robot.set_joint_targets(cmd.positions, dq=cmd.velocities)
-        step_simulation()
-        t += dt_s
-        n_step += 1
-        check = n_step % check_every == 0
-        if on_step is not None:
-            on_step(t)
-        seg = ctl.phase
-        if prev_seg is not None and seg != prev_seg and prev_seg.kind == 'swing':
-            feet = robot.foot_positions_world()
-            for leg in prev_seg.legs:
-                tgt = targets.pop(leg)
-                foot_err.append(float(np.linalg.norm(feet[leg, :2] - tgt[:2])))
-        if seg is not None and seg != prev_seg and seg.kind == 'swing':
-            for leg in seg.legs:
-                targets[leg] = order[step_i][1]
-                step_i += 1
-        prev_seg = seg
-        if check:
-            tilt = robot.base_tilt_deg()
-            max_tilt = max(max_tilt, tilt)
-            if tilt > 30.0 or (ground_id is not None and robot.non_foot_contacts(ground_id)):
-                fell = True
-                break
-        if seg is not None and seg.kind == 'swing':
-            tau = t - seg.t0
-            if record_com and len(seg.legs) == 1 and check:
-                stance = [k for k in range(4) if k not in seg.legs]
-                feet = robot.foot_positions_world()
-                com = com_world(client, robot, masses)
-                min_margin = min(min_margin, float(gaitlib.support_margin(
-                    com[:2], feet[stance, :2])))
-            if obstacle_id is not None and 0.2 * seg.duration < tau < 0.8 * seg.duration:
-                for leg in seg.legs:
-                    if client.getContactPoints(bodyA=robot.body_id, bodyB=obstacle_id,
-                                               linkIndexA=int(robot.foot_links[leg])):
-                        hits += 1
-        if obstacle_id is not None and robot.non_foot_contacts(obstacle_id):
-            leg_hits += 1
-        if seg is None and ctl.pending_steps == 0 and t > 0.5:
-            break
-    return WalkResult(sim_time_s=t, fell=fell, T_start=T_start, T_end=robot.base_pose(),
-                      T_end_desired=ctl.odom_pose, foot_errors_m=np.array(foot_err),
-                      min_com_margin_m=min_margin if np.isfinite(min_margin) else np.nan,
-                      max_tilt_deg=max_tilt, steps_done=ctl.steps_done,
-                      controller_error=ctl.last_error, swing_hits=hits,
-                      leg_hits=leg_hits)
+    """Execute footsteps (world contact points) with a fresh controller; see WalkRunner."""
+    runner = WalkRunner(client, robot, config or WalkingConfig(plan_timeout_s=max_time_s + 1),
+                        dt_s, height, record_com, obstacle_id, ground_id, check_every)
+    runner.run(legs, positions, gait, max_time_s, on_step)
+    return runner.result()
