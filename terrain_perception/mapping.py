@@ -56,15 +56,21 @@ class MapperConfig:
     # ---- coarse model / ICP
     coarse_stride_px: int = param(4, 'pixel stride sub-sampling an organized cloud for ICP',
                                   1, 64)
-    coarse_voxel_m: float = param(0.015, 'voxel size [m] of the ICP source and coarse model',
+    coarse_voxel_m: float = param(0.01, 'voxel size [m] of the ICP source and coarse model',
                                   0.001, 0.5)
     coarse_radius_m: float = param(1.5, 'coarse-model points farther than this [m] (x-y) '
                                    'from the robot are dropped', 0.2, 50.0)
     coarse_max_points: int = param(30000, 'cap on coarse-model points (newest kept)',
                                    100, 10_000_000)
-    normal_radius_m: float = param(0.04, 'neighbourhood radius [m] for model normals',
-                                   0.002, 1.0)
-    normal_max_nn: int = param(20, 'max neighbours for a model normal', 3, 200)
+    model_from: str = param('fine', 'cloud the coarse model is voxelised from: the full cloud '
+                            '(voxel centroids of many samples, less bias) or the ICP sub-sample',
+                            choices=('fine', 'coarse'))
+    normal_source: str = param('height_grid', 'model normals from the slopes of the capture\'s '
+                               '2.5-D height grid (fast) or from PCA of 3-D neighbours (Open3D)',
+                               choices=('height_grid', 'pca'))
+    normal_radius_m: float = param(0.03, 'normal neighbourhood [m]: half-width of the height-map '
+                                   'differences, or the PCA radius', 0.002, 1.0)
+    normal_max_nn: int = param(20, 'max neighbours for a PCA model normal', 3, 200)
     icp_method: str = param('point_to_plane', 'ICP error metric (point_to_point is kept for '
                             'comparison only)', choices=('point_to_plane', 'point_to_point'))
     max_correspondence_m: float = param(0.04, 'ICP correspondence distance [m]', 0.001, 1.0)
@@ -75,11 +81,18 @@ class MapperConfig:
     robust_kernel: str = param('tukey', 'robust loss on point-to-plane residuals',
                                choices=('none', 'huber', 'tukey', 'cauchy', 'gm', 'l1'))
     kernel_scale_m: float = param(0.01, 'robust kernel scale [m]', 1e-5, 1.0)
+    degeneracy_threshold: float = param(0.0, 'keep the prior along directions whose normalised '
+                                        'point-to-plane information is below this (0 = off)',
+                                        0.0, 1.0)
     # ---- guards
     min_fitness: float = param(0.3, 'reject an alignment matching fewer source points than '
                                'this fraction', 0.0, 1.0)
-    max_rmse_m: float = param(0.008, 'reject an alignment whose inlier RMSE [m] exceeds this',
-                              1e-5, 1.0)
+    max_rmse_m: float = param(0.01, 'reject an alignment whose point-to-plane RMSE [m] exceeds '
+                              'this', 1e-5, 1.0)
+    max_rmse_ratio: float = param(3.0, 'reject an alignment whose RMSE exceeds this multiple of '
+                                  'the median RMSE of recent accepted ones (0 = off)', 0.0, 100.0)
+    rmse_floor_m: float = param(0.0015, 'the relative RMSE test never rejects below this [m]',
+                                0.0, 1.0)
     max_correction_floor_m: float = param(0.02, 'correction [m] always allowed', 0.0, 10.0)
     max_correction_per_m: float = param(0.15, 'extra correction [m] allowed per metre walked '
                                         'since the last accepted capture', 0.0, 10.0)
@@ -87,6 +100,10 @@ class MapperConfig:
                                           0.0, 180.0)
     max_rotation_per_m_deg: float = param(8.0, 'extra rotation correction [deg] allowed per '
                                           'metre walked', 0.0, 360.0)
+    max_consecutive_rejections: int = param(10, 'after this many rejections in a row the '
+                                            'coarse model is restarted from the next capture '
+                                            'at its prior (lost: nothing left to align to)',
+                                            1, 1_000_000)
     fuse_rejected: bool = param(False, 'fuse captures whose alignment was rejected (at the '
                                 'prior pose) into the maps')
     # ---- roll / pitch priors
@@ -129,6 +146,7 @@ class MapperUpdate:
             correspondences (both NaN for the first capture).
         correction_m, correction_deg: ICP pose minus prior (body position [m], rotation [deg]).
         n_source, n_model: ICP source points and coarse-model points.
+        n_degenerate: directions (of 6) the geometry did not constrain; kept at the prior.
     """
 
     accepted: bool
@@ -144,6 +162,7 @@ class MapperUpdate:
     correction_deg: float = 0.0
     n_source: int = 0
     n_model: int = 0
+    n_degenerate: int = 0
 
 
 def _check_T(T: np.ndarray, name: str) -> np.ndarray:
@@ -304,6 +323,89 @@ class OdometryGate:
         self._last = (float(stamp_s), T)
 
 
+def remove_degenerate_motion(T_icp: np.ndarray, T_prior: np.ndarray, points: np.ndarray,
+                             normals: np.ndarray, threshold: float
+                             ) -> Tuple[np.ndarray, np.ndarray, int]:
+    """Keep only the part of an ICP correction that the geometry constrains.
+
+    Point-to-plane ICP cannot see motion along directions where the surface has no normal
+    component (flat ground: x, y, yaw), and the solver then drifts there freely. The correction
+    ``T_icp`` relative to ``T_prior`` (rotation about the prior's origin, translation) is
+    projected onto the eigenvectors of the point-to-plane information matrix
+    ``H = mean(J_i^T J_i)``, ``J_i = [((p_i - c) x n_i) / L, n_i]`` (rotation made unitless by
+    the cloud's RMS lever arm ``L``), whose eigenvalues reach ``threshold``; in the other
+    directions the prior is kept (solution remapping, Zhang et al., ICRA 2016).
+
+    Args:
+        T_icp, T_prior: 4x4 poses of the same frame (map <- sensor).
+        points: ``(N, 3)`` aligned source points in the map frame [m]; normals: their model
+            normals ``(N, 3)``.
+        threshold: smallest eigenvalue [-] (H is normalised, eigenvalues in [0, 1]) a
+            direction needs to be corrected.
+
+    Returns:
+        ``(T, eigenvalues (6,) ascending, number of directions left at the prior)``.
+    """
+    c = T_prior[:3, 3]
+    d = points - c
+    L = float(np.sqrt(np.mean(np.sum(d * d, axis=1)))) or 1.0
+    J = np.hstack([np.cross(d, normals) / L, normals])
+    H = J.T @ J / len(J)
+    w, V = np.linalg.eigh(H)
+    good = w >= threshold
+    if good.all():
+        return T_icp, w, 0
+    R_delta = T_icp[:3, :3] @ T_prior[:3, :3].T
+    x = np.concatenate([Rotation.from_matrix(R_delta).as_rotvec() * L,
+                        T_icp[:3, 3] - c])
+    Vg = V[:, good]
+    x = Vg @ (Vg.T @ x)
+    out = np.eye(4)
+    out[:3, :3] = Rotation.from_rotvec(x[:3] / L).as_matrix() @ T_prior[:3, :3]
+    out[:3, 3] = c + x[3:]
+    return out, w, int((~good).sum())
+
+
+def height_map_normals(h: np.ndarray, origin_xy: np.ndarray, resolution_m: float,
+                       xy: np.ndarray, half_width_cells: int) -> np.ndarray:
+    """Unit surface normals ``(N, 3)`` (z up) of a height grid ``h`` ``(nx, ny)`` [m] at world
+    ``xy`` ``(N, 2)`` [m], from central differences over ``+-half_width_cells`` (narrowed where
+    neighbours are unknown); NaN off the grid or where no difference exists."""
+    nx, ny = h.shape
+    ij = np.floor((xy - np.asarray(origin_xy)) / resolution_m).astype(np.int64)
+    i = np.clip(ij[:, 0], 0, nx - 1)
+    j = np.clip(ij[:, 1], 0, ny - 1)
+    gx = np.full(len(xy), np.nan)
+    gy = np.full(len(xy), np.nan)
+    for k in range(max(1, int(half_width_cells)), 0, -1):
+        ip, im = np.minimum(i + k, nx - 1), np.maximum(i - k, 0)
+        jp, jm = np.minimum(j + k, ny - 1), np.maximum(j - k, 0)
+        with np.errstate(invalid='ignore', divide='ignore'):
+            ex = (h[ip, j] - h[im, j]) / ((ip - im) * resolution_m)
+            ey = (h[i, jp] - h[i, jm]) / ((jp - jm) * resolution_m)
+        gx = np.where(np.isnan(gx), ex, gx)
+        gy = np.where(np.isnan(gy), ey, gy)
+    outside = (ij[:, 0] < 0) | (ij[:, 0] >= nx) | (ij[:, 1] < 0) | (ij[:, 1] >= ny)
+    gx[outside] = np.nan
+    n = np.stack([-gx, -gy, np.ones_like(gx)], axis=1)
+    return n / np.linalg.norm(n, axis=1, keepdims=True)
+
+
+def cloud_height_normals(points: np.ndarray, resolution_m: float,
+                         half_width_cells: int) -> np.ndarray:
+    """Normals ``(N, 3)`` of map-frame points ``(N, 3)`` [m] from their own 2.5-D height grid
+    (mean z per ``resolution_m`` cell; see :func:`height_map_normals`). Terrain is a height
+    field, so this matches PCA normals at a fraction of the cost."""
+    lo = points[:, :2].min(axis=0)
+    ij = np.floor((points[:, :2] - lo) / resolution_m).astype(np.int64)
+    shape = (int(ij[:, 0].max()) + 1, int(ij[:, 1].max()) + 1)
+    lin = ij[:, 0] * shape[1] + ij[:, 1]
+    n = np.bincount(lin, minlength=shape[0] * shape[1])
+    with np.errstate(invalid='ignore', divide='ignore'):
+        h = (np.bincount(lin, weights=points[:, 2], minlength=n.size) / n).reshape(shape)
+    return height_map_normals(h, lo, resolution_m, points[:, :2], half_width_cells)
+
+
 def _kernel(config: MapperConfig):
     k = config.kernel_scale_m
     return {'none': lambda: None, 'l1': _REG.L1Loss, 'huber': lambda: _REG.HuberLoss(k),
@@ -366,11 +468,16 @@ class FineHeightMap:
             return 0
         ij, f, z = ij[ok], f[ok], points_map[ok, 2]
         lin = ij[:, 0] * self.shape[1] + ij[:, 1]
-        cells, inv = np.unique(lin, return_inverse=True)
-        nb = np.bincount(inv).astype(np.float64)
-        sz = np.bincount(inv, weights=z)
-        mb = sz / nb
-        m2b = np.bincount(inv, weights=(z - mb[inv]) ** 2)
+        size = self.shape[0] * self.shape[1]
+        # full-length bincounts (no sort), then merge only the touched cells
+        nb_all = np.bincount(lin, minlength=size).astype(np.float64)
+        cells = np.flatnonzero(nb_all)
+        inv = np.zeros(size, np.int64)
+        inv[cells] = np.arange(len(cells))
+        inv = inv[lin]
+        nb = nb_all[cells]
+        mb = np.bincount(lin, weights=z, minlength=size)[cells] / nb
+        m2b = np.bincount(inv, weights=(z - mb[inv]) ** 2, minlength=len(cells))
         zmin = np.full(len(cells), np.inf)
         zmax = np.full(len(cells), -np.inf)
         np.minimum.at(zmin, inv, z)
@@ -389,15 +496,16 @@ class FineHeightMap:
         shift_b = mb - new_mean
         s['sxz'][cells] += shift_a * s['sx'][cells]
         s['syz'][cells] += shift_a * s['sy'][cells]
-        bx = np.bincount(inv, weights=dx)
-        by = np.bincount(inv, weights=dy)
-        s['sxz'][cells] += np.bincount(inv, weights=dx * dz) + shift_b * bx
-        s['syz'][cells] += np.bincount(inv, weights=dy * dz) + shift_b * by
+        nc = len(cells)
+        bx = np.bincount(inv, weights=dx, minlength=nc)
+        by = np.bincount(inv, weights=dy, minlength=nc)
+        s['sxz'][cells] += np.bincount(inv, weights=dx * dz, minlength=nc) + shift_b * bx
+        s['syz'][cells] += np.bincount(inv, weights=dy * dz, minlength=nc) + shift_b * by
         s['sx'][cells] += bx
         s['sy'][cells] += by
-        s['sxx'][cells] += np.bincount(inv, weights=dx * dx)
-        s['sxy'][cells] += np.bincount(inv, weights=dx * dy)
-        s['syy'][cells] += np.bincount(inv, weights=dy * dy)
+        s['sxx'][cells] += np.bincount(inv, weights=dx * dx, minlength=nc)
+        s['sxy'][cells] += np.bincount(inv, weights=dx * dy, minlength=nc)
+        s['syy'][cells] += np.bincount(inv, weights=dy * dy, minlength=nc)
         s['m2'][cells] += m2b + delta ** 2 * na * nb / n
         s['mean'][cells] = new_mean
         s['n'][cells] = n
@@ -431,6 +539,12 @@ class FineHeightMap:
             good = seen & (n >= 6) & (cxx > r2) & (cyy > r2) & (det > 0.25 * r2 * r2)
             hp = s['mean'] - gx * mx - gy * my
         return np.where(good, hp, h)
+
+    def normals_at(self, xy: np.ndarray, half_width_cells: int) -> np.ndarray:
+        """Unit normals ``(N, 3)`` of the height map at world ``xy`` [m]
+        (see :func:`height_map_normals`)."""
+        return height_map_normals(self.heights(), self.origin_xy, self.resolution_m, xy,
+                                  half_width_cells)
 
     def shift(self, di: int, dj: int) -> None:
         """Move the window by whole cells (``+di`` = origin moves +x); uncovered cells empty."""
@@ -496,6 +610,8 @@ class IcpMapper:
         self._walked_since_accept_m = 0.0
         self._last_odom: Optional[np.ndarray] = None
         self._estimation = make_estimation(config)
+        self._recent_rmse: Deque[float] = collections.deque(maxlen=20)
+        self._rejections_in_a_row = 0
 
     # ---- public state ----------------------------------------------------------------------
     @property
@@ -559,6 +675,16 @@ class IcpMapper:
             raise ValueError(f'coarse cloud has only {len(src)} valid points')
         return fine, src
 
+    def rmse_limit(self) -> float:
+        """Largest point-to-plane RMSE [m] an alignment may have now: ``max_rmse_m``, tightened
+        to ``max_rmse_ratio`` x the median of recent accepted alignments (not below
+        ``rmse_floor_m``) once three are known."""
+        c = self.config
+        if c.max_rmse_ratio <= 0 or len(self._recent_rmse) < 3:
+            return c.max_rmse_m
+        rel = c.max_rmse_ratio * float(np.median(self._recent_rmse))
+        return min(c.max_rmse_m, max(c.rmse_floor_m, rel))
+
     def predict(self, T_odom_base: np.ndarray) -> np.ndarray:
         """Prior ``T_map_base`` from dead reckoning and the current correction."""
         return self.T_map_odom @ _check_T(T_odom_base, 'T_odom_base')
@@ -595,7 +721,6 @@ class IcpMapper:
         if result.accepted or c.fuse_rejected:
             self.fuse(fine, src, result.T_map_camera, result.T_map_base, stamp_s)
             result.fused = True
-        self._last_stamp = max(self._last_stamp, float(stamp_s))
         return result
 
     def align(self, src_camera: np.ndarray, T_odom_base: np.ndarray,
@@ -619,6 +744,12 @@ class IcpMapper:
             T_cam_prior = T_cam_prior.copy()
             T_cam_prior[:3, :3] = level_rotation(T_cam_prior[:3, :3], up)
         n_model = len(self._model.points)
+        if self._rejections_in_a_row >= c.max_consecutive_rejections:
+            self._model = o3d.geometry.PointCloud()
+            self._recent_rmse.clear()
+            self._rejections_in_a_row = 0
+            self.counters['model_restarted'] += 1
+            n_model = 0
         if n_model == 0:
             self.counters['first_capture'] += 1
             T_base = T_cam_prior @ invert(self.T_base_camera)
@@ -634,7 +765,15 @@ class IcpMapper:
         T_cam = np.asarray(reg.transformation).copy()
         # Open3D's inlier_rmse is the point-to-point distance; the guard wants the residual
         # of the metric being minimised, so recompute point-to-plane over the correspondences
-        rmse = self._plane_rmse(src, T_cam, np.asarray(reg.correspondence_set))
+        corr = np.asarray(reg.correspondence_set)
+        n_degenerate = 0
+        if c.degeneracy_threshold > 0 and len(corr) >= 6:
+            T_cam, _, n_degenerate = remove_degenerate_motion(
+                T_cam, T_cam_prior, transform_points(T_cam, np.asarray(src.points)[corr[:, 0]]),
+                np.asarray(self._model.normals)[corr[:, 1]], c.degeneracy_threshold)
+            if n_degenerate:
+                self.counters['degenerate_alignments'] += 1
+        rmse = self._plane_rmse(src, T_cam, corr)
         T_base = T_cam @ invert(self.T_base_camera)
         corr_m = float(np.linalg.norm(T_base[:3, 3] - T_prior[:3, 3]))
         corr_rad = angle_between(T_base[:3, :3], T_prior[:3, :3])
@@ -645,8 +784,9 @@ class IcpMapper:
         if reg.fitness < c.min_fitness:
             reason = f'fitness {reg.fitness:.2f} < {c.min_fitness:.2f}'
             self.counters['rejected_fitness'] += 1
-        elif rmse > c.max_rmse_m:
-            reason = f'point-to-plane rmse {rmse * 1e3:.1f} mm > {c.max_rmse_m * 1e3:.1f} mm'
+        elif rmse > self.rmse_limit():
+            reason = (f'point-to-plane rmse {rmse * 1e3:.1f} mm > '
+                      f'{self.rmse_limit() * 1e3:.1f} mm')
             self.counters['rejected_rmse'] += 1
         elif corr_m > allowed_m:
             reason = (f'correction {corr_m * 1e3:.0f} mm exceeds the expected drift '
@@ -663,11 +803,15 @@ class IcpMapper:
                 self.counters['rejected_level'] += 1
         upd = MapperUpdate(not reason, False, reason, T_base, T_cam, T_prior,
                            self.T_map_odom.copy(), float(reg.fitness), rmse,
-                           corr_m, float(np.degrees(corr_rad)), len(src.points), n_model)
+                           corr_m, float(np.degrees(corr_rad)), len(src.points), n_model,
+                           n_degenerate)
         if reason:
             upd.T_map_base, upd.T_map_camera = T_prior, T_prior @ self.T_base_camera
+            self._rejections_in_a_row += 1
             return upd
+        self._rejections_in_a_row = 0
         self.counters['accepted'] += 1
+        self._recent_rmse.append(rmse)
         self._accept(T_base, T_odom_base)
         upd.T_map_odom = self.T_map_odom.copy()
         return upd
@@ -692,12 +836,20 @@ class IcpMapper:
         self._recenter(T_map_base[:3, 3])
         self.fine.add(transform_points(T_map_camera, fine_camera), stamp_s)
         # coarse model: the capture's sparse points with normals from its own neighbourhood
+        model_pts = fine_camera if c.model_from == 'fine' else src_camera
         new = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(
-            transform_points(T_map_camera, src_camera)))
+            transform_points(T_map_camera, model_pts)))
         new = new.voxel_down_sample(c.coarse_voxel_m)
-        new.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(c.normal_radius_m,
-                                                                  c.normal_max_nn))
-        new.orient_normals_towards_camera_location(T_map_camera[:3, 3])
+        if c.normal_source == 'height_grid':
+            nrm = cloud_height_normals(np.asarray(new.points), c.coarse_voxel_m,
+                                       int(round(c.normal_radius_m / c.coarse_voxel_m)))
+            good = np.all(np.isfinite(nrm), axis=1)
+            new = new.select_by_index(np.flatnonzero(good))
+            new.normals = o3d.utility.Vector3dVector(nrm[good])
+        else:
+            new.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(c.normal_radius_m,
+                                                                      c.normal_max_nn))
+            new.orient_normals_towards_camera_location(T_map_camera[:3, 3])
         # the stamp rides in the colour channel through voxel averaging (capping keeps newest)
         new.colors = o3d.utility.Vector3dVector(np.full((len(new.points), 3), float(stamp_s)))
         # re-voxelise so overlapping captures do not pile up

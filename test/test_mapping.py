@@ -1,0 +1,333 @@
+"""ICP mapper core: localisation, guards, fine map, moving window, bad input."""
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from terrain_perception import mapping as mp
+from terrain_perception import raycast as rc
+from terrain_perception.camera import PinholeCamera
+from terrain_perception.grid import ELEVATION, OBSERVED, VARIANCE, GridMap
+from terrain_perception.robot_model import camera_mount
+from terrain_perception.transforms import angle_between, make_T, rpy_to_R
+
+T_BC = camera_mount(np.array([0.14, 0.0, 0.05]), np.radians(35.0))
+CAM = PinholeCamera.from_fov(160, 120, 50.0)
+
+
+def bumpy(origin=(-0.5, -1.0), shape=(500, 400), res=0.005, n=120, seed=1):
+    """Smooth random terrain: a sum of Gaussian bumps and dips."""
+    rng = np.random.default_rng(seed)
+    g = GridMap.empty(res, origin, shape)
+    xs, ys = g.cell_centers()
+    X, Y = np.meshgrid(xs, ys, indexing='ij')
+    H = np.zeros_like(X)
+    x0, y0 = origin
+    x1, y1 = x0 + shape[0] * res, y0 + shape[1] * res
+    for _ in range(n):
+        cx, cy = rng.uniform(x0, x1), rng.uniform(y0, y1)
+        s, h = rng.uniform(0.03, 0.08), rng.uniform(-0.03, 0.04)
+        H += h * np.exp(-((X - cx) ** 2 + (Y - cy) ** 2) / (2 * s * s))
+    g[ELEVATION] = H
+    return g
+
+
+def periodic(period=0.08, amp=0.02):
+    g = GridMap.empty(0.005, (-0.5, -1.0), (500, 400))
+    xs, ys = g.cell_centers()
+    X, Y = np.meshgrid(xs, ys, indexing='ij')
+    g[ELEVATION] = amp * np.sin(2 * np.pi * X / period) * np.sin(2 * np.pi * Y / period)
+    return g
+
+
+@pytest.fixture(scope='module')
+def terrain():
+    g = bumpy()
+    return g, rc.HeightFieldScene(g)
+
+
+def cloud_at(scene, T_map_base, cam=CAM):
+    return cam.depth_to_points(scene.depth_image(cam, T_map_base @ T_BC))
+
+
+T0 = make_T(np.eye(3), [0.0, 0.0, 0.2])
+T1 = make_T(rpy_to_R(0.01, -0.02, 0.05), [0.05, 0.01, 0.21])
+
+
+def first_mapper(scene, config=mp.MapperConfig()):
+    m = mp.IcpMapper(config, T_BC)
+    u = m.update(cloud_at(scene, T0), T0, 0.0)
+    assert u.accepted and u.fused
+    return m
+
+
+def snapshot(m):
+    return ({k: v.copy() for k, v in m.fine.s.items()}, m.fine.origin_xy.copy(),
+            m.coarse_points(), m.T_map_odom.copy(), m.capture_poses()[1].copy(),
+            m.stamp_s, dict(m.counters))
+
+
+def assert_unchanged(m, snap):
+    stats, origin, coarse, T_mo, poses, stamp, counters = snap
+    for k, v in stats.items():
+        np.testing.assert_array_equal(m.fine.s[k], v, err_msg=f'fine statistic {k} changed')
+    np.testing.assert_array_equal(m.fine.origin_xy, origin)
+    np.testing.assert_array_equal(m.coarse_points(), coarse)
+    np.testing.assert_array_equal(m.T_map_odom, T_mo)
+    np.testing.assert_array_equal(m.capture_poses()[1], poses)
+    assert m.stamp_s == stamp
+    assert dict(m.counters) == counters
+
+
+def pose_error(T_est, T_true):
+    return (np.linalg.norm(T_est[:3, 3] - T_true[:3, 3]),
+            np.degrees(angle_between(T_est[:3, :3], T_true[:3, :3])))
+
+
+def test_icp_recovers_a_known_6dof_offset(terrain):
+    _, scene = terrain
+    m = first_mapper(scene)
+    offset = make_T(rpy_to_R(*np.radians([0.5, -0.4, 0.8])), [0.015, -0.01, 0.005])
+    prior = offset @ T1  # dead reckoning wrong by 1.9 cm and ~1 deg in all six axes
+    e_prior = pose_error(prior, T1)
+    assert e_prior[0] > 0.015 and e_prior[1] > 0.9
+    u = m.update(cloud_at(scene, T1), prior, 1.0)
+    assert u.accepted, u.reason
+    err_m, err_deg = pose_error(u.T_map_base, T1)
+    assert err_m < 1e-3, f'translation error {err_m * 1e3:.2f} mm'
+    assert err_deg < 0.1, f'rotation error {err_deg:.3f} deg'
+    # the correction re-anchors dead reckoning: the same odometry now maps to the truth
+    err_m2, _ = pose_error(m.T_map_odom @ prior, T1)
+    assert err_m2 < 1e-3
+
+
+def test_alignment_forced_into_a_wrong_minimum_is_rejected():
+    # a periodic terrain (period 14 cm); the body slipped 9.5 cm while dead reckoning says it
+    # stood still, so the prior is 2/3 of a period off
+    g = periodic(period=0.14, amp=0.03)
+    scene = rc.HeightFieldScene(g)
+    truth = make_T(np.eye(3), [0.095, 0.0, 0.0]) @ T0
+    prior = T0
+    # unguarded, ICP settles on the wrong copy of the pattern, with a convincing fit
+    loose = dataclasses.replace(mp.MapperConfig(), max_correction_floor_m=10.0,
+                                max_rotation_floor_deg=180.0)
+    m_loose = first_mapper(scene, loose)
+    u_loose = m_loose.update(cloud_at(scene, truth), prior, 1.0)
+    assert u_loose.accepted and u_loose.fitness > 0.9
+    assert pose_error(u_loose.T_map_base, truth)[0] > 0.1, 'test needs a real wrong minimum'
+    # guarded: the correction is far beyond what 0 m of walking can drift -> rejected
+    m = first_mapper(scene)
+    snap = snapshot(m)
+    u = m.update(cloud_at(scene, truth), prior, 1.0)
+    assert not u.accepted and not u.fused
+    assert 'correction' in u.reason
+    assert m.counters['rejected_correction'] == 1
+    np.testing.assert_allclose(u.T_map_base, prior, atol=1e-12)  # the prior is kept
+    stats, origin, coarse, T_mo, poses, _, _ = snap
+    np.testing.assert_array_equal(m.coarse_points(), coarse)
+    for k, v in stats.items():
+        np.testing.assert_array_equal(m.fine.s[k], v)
+    np.testing.assert_array_equal(m.T_map_odom, T_mo)
+    np.testing.assert_array_equal(m.capture_poses()[1], poses)
+
+
+def test_misfit_alignments_rejected_by_fitness_and_by_residual(terrain):
+    _, scene = terrain
+    loose = dataclasses.replace(mp.MapperConfig(), max_correction_floor_m=10.0,
+                                max_rotation_floor_deg=180.0)
+    # far off: ICP ends where few points find a partner
+    m = first_mapper(scene, loose)
+    prior = make_T(rpy_to_R(0.0, 0.0, np.radians(40.0)), [0.2, 0.1, 0.0]) @ T1
+    u = m.update(cloud_at(scene, T1), prior, 1.0)
+    assert pose_error(u.T_map_base, T1)[0] > 0.05 and not u.accepted
+    assert m.counters['rejected_fitness'] == 1, u.reason
+    # after a few good alignments, a misfit with a 10x larger residual is refused
+    m = first_mapper(scene, loose)
+    for k, dx in enumerate((0.01, 0.02, 0.03)):
+        T = make_T(np.eye(3), [dx, 0.0, 0.0]) @ T0
+        assert m.update(cloud_at(scene, T), T, 1.0 + k).accepted
+    assert m.rmse_limit() < 0.003
+    snap = snapshot(m)
+    prior = make_T(rpy_to_R(0.0, 0.0, np.radians(25.0)), [0.12, -0.1, 0.03]) @ T1
+    u = m.update(cloud_at(scene, T1), prior, 5.0)
+    assert pose_error(u.T_map_base, T1)[0] > 0.05 and not u.accepted
+    assert m.counters['rejected_rmse'] == 1, u.reason
+    snap[-1]['rejected_rmse'] = 1
+    assert_unchanged(m, snap)
+
+
+def test_fine_map_of_known_height_field_from_known_poses(terrain):
+    g, scene = terrain
+    poses = [make_T(rpy_to_R(0.0, 0.0, yaw), [x, y, 0.2])
+             for x, y, yaw in [(0.0, 0.0, 0.0), (0.1, 0.05, 0.1), (0.2, -0.05, -0.1)]]
+    for estimator, tol in (('plane', 0.5e-3), ('mean', 1.0e-3)):
+        m = mp.IcpMapper(dataclasses.replace(mp.MapperConfig(), fine_estimator=estimator),
+                         T_BC)
+        for k, T in enumerate(poses):
+            fine, src = m.prepare(cloud_at(scene, T))
+            m.fuse(fine, src, T @ T_BC, T, float(k))
+        grid = m.fine_grid()
+        h = grid[ELEVATION]
+        obs = grid[OBSERVED] > 0
+        assert obs.sum() > 5000
+        xs, ys = grid.cell_centers()
+        X, Y = np.meshgrid(xs, ys, indexing='ij')
+        truth = rc.interpolate_height(g, np.stack([X, Y], -1))
+        both = obs & np.isfinite(truth)
+        rmse = np.sqrt(np.mean((h[both] - truth[both]) ** 2))
+        assert rmse < tol, f'{estimator}: height RMSE {rmse * 1e3:.2f} mm'
+        # empty cells stay unknown; statistics are consistent
+        assert np.isnan(h[~obs]).all() and (grid['count'][~obs] == 0).all()
+        assert (grid['min'][obs] <= grid['max'][obs]).all()
+        assert (grid[VARIANCE][obs] >= 0).all() and (grid['count'][obs] >= 1).all()
+        assert np.isin(grid['last_seen'][obs], [0.0, 1.0, 2.0]).all()
+        assert np.any(grid['last_seen'][obs] == 2.0) and np.any(grid['last_seen'][obs] == 0.0)
+        # every capture's camera pose is kept with the map
+        stamps, cams = m.capture_poses()
+        np.testing.assert_array_equal(stamps, [0.0, 1.0, 2.0])
+        np.testing.assert_allclose(cams, [T @ T_BC for T in poses])
+        assert len(grid.metadata['capture_poses']) == 3
+
+
+def test_fine_map_shift_keeps_world_positions():
+    f = mp.FineHeightMap(0.01, (50, 40), (1.0, 2.0))
+    rng = np.random.default_rng(0)
+    pts = np.c_[rng.uniform(1.0, 1.5, 5000), rng.uniform(2.0, 2.4, 5000),
+                rng.uniform(0, 0.1, 5000)]
+    f.add(pts, 1.0)
+    before = f.to_grid()
+    f.shift(7, -3)
+    after = f.to_grid()
+    assert after.origin_xy == pytest.approx((1.07, 1.97))
+    probe = np.c_[rng.uniform(1.08, 1.49, 500), rng.uniform(2.0, 2.36, 500)]
+    np.testing.assert_array_equal(after.sample(ELEVATION, probe),
+                                  before.sample(ELEVATION, probe))
+    assert np.isnan(after[ELEVATION][-7:, :]).all() and np.isnan(after[ELEVATION][:, :3]).all()
+
+
+def test_memory_stays_bounded_over_a_long_walk():
+    g = bumpy(origin=(-0.5, -0.6), shape=(950, 120), res=0.01, n=450, seed=3)
+    scene = rc.HeightFieldScene(g)
+    cam = PinholeCamera.from_fov(128, 96, 50.0)
+    cfg = dataclasses.replace(mp.MapperConfig(), fine_size_m=1.5, coarse_radius_m=1.0,
+                              recenter_distance_m=0.2, max_capture_poses=30)
+    m = mp.IcpMapper(cfg, T_BC)
+    mem, npts = [], []
+    xs = np.arange(0.0, 8.0, 0.1)
+    for k, x in enumerate(xs):
+        T = make_T(np.eye(3), [x, 0.0, 0.2])
+        # fuse at the true pose: this test is about the moving window, not localisation
+        fine, src = m.prepare(cloud_at(scene, T, cam))
+        m.fuse(fine, src, T @ T_BC, T, float(k))
+        mem.append(m.memory_bytes)
+        npts.append(len(m.coarse_points()))
+    assert m.counters['recentred'] > 15
+    assert m.fine.shape == (150, 150)
+    grid = m.fine_grid()
+    cx, cy = grid.center_xy
+    assert abs(cx - xs[-1]) <= 0.2 + 0.01 and abs(cy) <= 0.2 + 0.01
+    # the coarse model only holds points near the robot
+    pts = m.coarse_points()
+    assert np.linalg.norm(pts[:, :2] - [xs[-1], 0.0], axis=1).max() <= 1.0 + 1e-9
+    assert len(m.capture_poses()[0]) <= 30
+    first, last = max(mem[: len(mem) // 4]), max(mem[len(mem) // 2:])
+    assert last <= 1.25 * first, f'memory grew from {first} to {last} bytes'
+    assert max(npts[len(npts) // 2:]) <= 1.25 * max(npts[: len(npts) // 4])
+    # after many moves the map still matches the terrain where it was observed
+    xs_c, ys_c = grid.cell_centers()
+    X, Y = np.meshgrid(xs_c, ys_c, indexing='ij')
+    truth = rc.interpolate_height(g, np.stack([X, Y], -1))
+    h = grid[ELEVATION]
+    ok = np.isfinite(h) & np.isfinite(truth)
+    assert ok.sum() > 1000
+    assert np.sqrt(np.mean((h[ok] - truth[ok]) ** 2)) < 1e-3
+
+
+@pytest.mark.parametrize('bad, match', [
+    (np.zeros((0, 3), np.float32), 'empty'),
+    (np.full((120, 160, 3), np.nan, np.float32), 'no finite point'),
+    (np.zeros((120, 160, 4), np.float32), 'shape'),
+    (np.zeros((100, 2), np.float32), 'shape'),
+    (np.ones((120, 160, 3), np.int16), 'floating'),
+    (np.tile(np.array([0.0, 0.0, 0.5], np.float32), (20, 1)), 'valid points'),
+])
+def test_bad_clouds_leave_the_map_unchanged(terrain, bad, match):
+    _, scene = terrain
+    m = first_mapper(scene)
+    snap = snapshot(m)
+    with pytest.raises(ValueError, match=match):
+        m.update(bad, T1, 1.0)
+    assert_unchanged(m, snap)
+
+
+def test_bad_poses_and_stamps_leave_the_map_unchanged(terrain):
+    _, scene = terrain
+    m = first_mapper(scene)
+    m.update(cloud_at(scene, T1), T1, 5.0)
+    snap = snapshot(m)
+    good = cloud_at(scene, T1)
+    nan_pose = T1.copy()
+    nan_pose[0, 3] = np.nan
+    skew = T1.copy()
+    skew[:3, :3] *= 1.5
+    cases = [((good, T1, 4.0), 'older than the map'),
+             ((good, T1, float('nan')), 'stamp'),
+             ((good, nan_pose, 6.0), 'finite 4x4'),
+             ((good, skew, 6.0), 'orthonormal'),
+             ((good, np.eye(3), 6.0), 'finite 4x4')]
+    for args, match in cases:
+        with pytest.raises(ValueError, match=match):
+            m.update(*args)
+        assert_unchanged(m, snap)
+    with pytest.raises(ValueError, match='up vector'):
+        m.update(good, T1, 6.0, up_camera=np.zeros(3))
+    assert_unchanged(m, snap)
+
+
+def test_odometry_gate_and_pose_buffer():
+    gate = mp.OdometryGate(max_speed_m_s=1.0, max_yaw_rate_deg_s=90.0)
+    gate.check(0.0, T0)
+    gate.check(0.1, make_T(np.eye(3), [0.05, 0.0, 0.2]))
+    with pytest.raises(ValueError, match='back in time'):
+        gate.check(0.05, T0)
+    with pytest.raises(ValueError, match='jumped'):
+        gate.check(0.2, make_T(np.eye(3), [0.6, 0.0, 0.2]))
+    with pytest.raises(ValueError, match='turned'):
+        gate.check(0.2, make_T(rpy_to_R(0, 0, np.radians(40)), [0.06, 0.0, 0.2]))
+    gate.check(0.2, make_T(np.eye(3), [0.07, 0.0, 0.2]))  # rejected samples were not kept
+
+    buf = mp.PoseBuffer(max_len=5, max_extrapolation_s=0.1)
+    buf.add(1.0, make_T(np.eye(3), [0.0, 0.0, 0.0]))
+    buf.add(2.0, make_T(rpy_to_R(0, 0, 0.2), [1.0, 2.0, 0.0]))
+    mid = buf.at(1.25)
+    np.testing.assert_allclose(mid[:3, 3], [0.25, 0.5, 0.0])
+    np.testing.assert_allclose(mid[:3, :3], rpy_to_R(0, 0, 0.05), atol=1e-12)
+    with pytest.raises(ValueError, match='back in time'):
+        buf.add(1.5, T0)
+    with pytest.raises(ValueError, match='stale'):
+        buf.at(2.5)
+    with pytest.raises(ValueError, match='as old'):
+        buf.at(0.5)
+
+
+def test_roll_pitch_priors(terrain):
+    _, scene = terrain
+    # a plane seen by the camera gives the up direction in the camera frame
+    flat = GridMap.empty(0.01, (-1.0, -1.0), (300, 200))
+    flat[ELEVATION] = np.zeros(flat.shape)
+    T = make_T(rpy_to_R(0.03, -0.02, 0.4), [0.0, 0.0, 0.2])
+    pts = mp.valid_points(rc.raycast_points(flat, CAM, T @ T_BC))
+    up = mp.ground_plane_up(pts, 0.002, 0.5)
+    R_map_cam = (T @ T_BC)[:3, :3]
+    assert np.degrees(np.arccos(np.clip((R_map_cam @ up)[2], -1, 1))) < 0.05
+    # levelling a prior with 3 deg of roll error restores roll/pitch and keeps yaw
+    tilted = rpy_to_R(np.radians(3.0), 0.0, 0.0) @ R_map_cam
+    levelled = mp.level_rotation(tilted, up)
+    assert np.degrees(angle_between(levelled, R_map_cam)) < 0.05
+    # the mapper applies the gravity prior to its first capture
+    cfg = dataclasses.replace(mp.MapperConfig(), use_gravity_prior=True)
+    m = mp.IcpMapper(cfg, T_BC)
+    prior = make_T(rpy_to_R(np.radians(3.0), 0, 0)) @ T0
+    u = m.update(cloud_at(scene, T0), prior, 0.0, up_camera=(T0 @ T_BC)[:3, :3].T @ [0, 0, 1])
+    assert pose_error(u.T_map_base, T0)[1] < 0.05
