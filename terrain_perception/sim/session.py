@@ -312,3 +312,41 @@ class SimSession:
         R = T[:3, :3]
         return T, R.T @ v, R.T @ w
 
+
+
+def measure_realtime_factor(session: SimSession, sim_seconds: float,
+                            cameras: bool = True) -> dict:
+    """Run ``session`` like the bridge does (physics + state readings at 100 Hz + due captures)
+    for ``sim_seconds`` and time it on the wall clock (benchmarks only).
+
+    Returns:
+        ``{'rtf': sim s per wall s, 'physics_s': wall time in physics, 'render_s': wall time
+        in rendering, 'captures': n, 'render_ms_per_pair': mean, 'image': 'WxH'}``.
+    """
+    import time
+    n_steps = int(round(sim_seconds / session.dt_s))
+    state_every = max(1, int(round(0.01 / session.dt_s)))
+    physics = render = 0.0
+    captures = 0
+    for k in range(n_steps):
+        t0 = time.perf_counter()
+        session.step(1)
+        if k % state_every == 0:
+            session.imu()
+            session.joint_state()
+            session.base_state()
+        t1 = time.perf_counter()
+        physics += t1 - t0
+        if session.capture_due():
+            if cameras:
+                session.render()
+                captures += 1
+            else:
+                session.mark_captured()
+            render += time.perf_counter() - t1
+    wall = physics + render
+    cam = session.stereo.left
+    return {'rtf': sim_seconds / wall if wall > 0 else float('inf'), 'physics_s': physics,
+            'render_s': render, 'captures': captures,
+            'render_ms_per_pair': 1e3 * render / captures if captures else 0.0,
+            'image': f'{cam.width}x{cam.height}'}

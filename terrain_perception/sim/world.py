@@ -19,7 +19,7 @@ from __future__ import annotations
 import tempfile
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Optional, Tuple
+from typing import List, Optional, Tuple
 
 import numpy as np
 
@@ -47,8 +47,9 @@ class WorldConfig:
                                   'tile / size is the texel size', 0.01, 100.0)
     ground_margin_m: float = param(4.0, 'textured flat ground drawn around the course [m]',
                                    0.0, 100.0)
-    ground_cell_m: float = param(0.1, 'triangle size of the flat ground mesh [m] (coarse: it '
-                                 'is flat; texture carries the detail)', 0.005, 10.0)
+    ground_cell_m: float = param(0.1, 'triangle size of flat ground [m]: flat, so coarse (the '
+                                 'texture carries the detail), but TinyRenderer scans each '
+                                 'triangle\'s screen box, so not huge', 0.005, 10.0)
     friction: float = param(1.0, 'lateral friction of the terrain and the floor', 0.0, 10.0)
 
 
@@ -109,32 +110,81 @@ def _grid_mesh(xs: np.ndarray, ys: np.ndarray, z: np.ndarray) -> Tuple[np.ndarra
     return verts, idx, normals
 
 
-def _axis_keep(z: np.ndarray, axis: int, coarse_every: int) -> np.ndarray:
-    """Indices along ``axis`` to keep: every sample next to a non-flat line, every
-    ``coarse_every``-th elsewhere, and both ends. Dropped lines are flat and lie between
-    flat lines, so linear interpolation over them is exact."""
-    zt = z if axis == 0 else z.T
-    flat = np.all(zt == 0.0, axis=1)
-    near_rough = ~flat
-    near_rough[1:] |= ~flat[:-1]
-    near_rough[:-1] |= ~flat[1:]
-    idx = np.arange(len(flat))
-    keep = near_rough | (idx % coarse_every == 0)
-    keep[0] = keep[-1] = True
-    return idx[keep]
+def _rect_mesh(x0: float, x1: float, y0: float, y1: float, cell: float
+               ) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A flat (z = 0) rectangle tessellated into cells of at most ``cell`` [m]."""
+    nx = max(1, int(np.ceil((x1 - x0) / cell)))
+    ny = max(1, int(np.ceil((y1 - y0) / cell)))
+    return _grid_mesh(np.linspace(x0, x1, nx + 1), np.linspace(y0, y1, ny + 1),
+                      np.zeros((nx + 1, ny + 1)))
 
 
-def _margin_axis(lo: float, hi: float, margin: float, coarse: float) -> Tuple[np.ndarray,
-                                                                               np.ndarray]:
-    """Coarse coordinates below ``lo`` and above ``hi`` out to ``margin``."""
-    if margin <= 0:
-        return np.zeros(0), np.zeros(0)
-    n_out = max(1, int(np.ceil(margin / coarse)))
-    out = np.arange(1, n_out + 1) * coarse
-    return lo - out[::-1], hi + out
+def terrain_mesh_parts(xs: np.ndarray, ys: np.ndarray, z: np.ndarray, block: int,
+                       margin_m: float, ground_cell_m: float
+                       ) -> List[Tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """Visual mesh pieces ``(vertices, indices, normals)`` of a height grid plus flat ground.
+
+    The grid (vertices at ``xs`` x ``ys``) is cut into blocks of ``block`` x ``block`` quads;
+    a block whose vertices are all at 0 becomes part of a flat rectangle (runs of flat blocks
+    merged along x, tessellated at ``ground_cell_m``), any other block keeps every vertex. Flat ground of ``margin_m`` surrounds
+    the grid in four strips. Flat and fine pieces meet only where heights are 0, so the
+    surface has no cracks (only T-junctions on flat lines).
+    """
+    nx, ny = z.shape
+    normals_all = _grid_normals(xs, ys, z)
+    parts = []
+    bi = list(range(0, nx - 1, block))
+    bj = list(range(0, ny - 1, block))
+    for j0 in bj:
+        j1 = min(j0 + block, ny - 1)
+        run_start = None
+        for k, i0 in enumerate(bi + [None]):
+            flat = False
+            if i0 is not None:
+                i1 = min(i0 + block, nx - 1)
+                sub = z[i0:i1 + 1, j0:j1 + 1]
+                flat = not np.any(sub)
+            if flat and run_start is None:
+                run_start = i0
+            if (not flat or i0 is None) and run_start is not None:
+                end = i0 if i0 is not None else nx - 1
+                parts.append(_rect_mesh(xs[run_start], xs[end], ys[j0], ys[j1], ground_cell_m))
+                run_start = None
+            if i0 is not None and not flat:
+                v, idx, _ = _grid_mesh(xs[i0:i1 + 1], ys[j0:j1 + 1], sub)
+                parts.append((v, idx, normals_all[i0:i1 + 1, j0:j1 + 1].reshape(-1, 3)))
+    if margin_m > 0:
+        X0, X1, Y0, Y1 = xs[0], xs[-1], ys[0], ys[-1]
+        m, c = margin_m, ground_cell_m
+        parts += [_rect_mesh(X0 - m, X0, Y0 - m, Y1 + m, c),
+                  _rect_mesh(X1, X1 + m, Y0 - m, Y1 + m, c),
+                  _rect_mesh(X0, X1, Y0 - m, Y0, c),
+                  _rect_mesh(X0, X1, Y1, Y1 + m, c)]
+    return parts
 
 
-_MAX_TILE_CELLS = 120   # pybullet caps a mesh's vertices and indices; tiles stay well below
+def _merge_parts(parts, max_vertices: int):
+    """Concatenate mesh pieces into bodies of at most ``max_vertices`` vertices each."""
+    out, cur, n = [], [], 0
+    for part in parts:
+        if cur and n + len(part[0]) > max_vertices:
+            out.append(cur)
+            cur, n = [], 0
+        cur.append(part)
+        n += len(part[0])
+    if cur:
+        out.append(cur)
+    merged = []
+    for group in out:
+        offs = np.cumsum([0] + [len(p[0]) for p in group[:-1]])
+        merged.append((np.concatenate([p[0] for p in group]),
+                       np.concatenate([p[1] + o for p, o in zip(group, offs)]),
+                       np.concatenate([p[2] for p in group])))
+    return merged
+
+
+_MAX_BODY_VERTICES = 40000   # pybullet caps a mesh's vertices and indices per shape
+_BLOCK_QUADS = 16            # fine / flat decision granularity of the visual mesh
 
 
 class SimWorld:
@@ -210,36 +260,24 @@ class SimWorld:
         cfg = self.cfg
         res = self.course.resolution_m
         xs, ys = self.course.cell_centers()
-        every = max(1, int(round(cfg.ground_cell_m / res)))
-        ki, kj = _axis_keep(z, 0, every), _axis_keep(z, 1, every)
-        bx0, bx1 = _margin_axis(xs[0], xs[-1], cfg.ground_margin_m, cfg.ground_cell_m)
-        by0, by1 = _margin_axis(ys[0], ys[-1], cfg.ground_margin_m, cfg.ground_cell_m)
-        vx = np.concatenate([bx0, xs[ki], bx1])
-        vy = np.concatenate([by0, ys[kj], by1])
-        zz = np.zeros((len(vx), len(vy)))
-        zz[len(bx0):len(bx0) + len(ki), len(by0):len(by0) + len(kj)] = z[np.ix_(ki, kj)]
         texture = rock_texture(self.texture_seed, cfg.texture_size_px)
         with tempfile.TemporaryDirectory() as tmp:
             import cv2
             path = Path(tmp) / 'ground.png'
             cv2.imwrite(str(path), texture[:, :, ::-1])
             tex_id = c.loadTexture(str(path))
+        parts = terrain_mesh_parts(xs, ys, z, _BLOCK_QUADS, cfg.ground_margin_m,
+                                   cfg.ground_cell_m)
         self.visual_ids = []
-        step = _MAX_TILE_CELLS
-        for i0 in range(0, len(vx) - 1, step):
-            for j0 in range(0, len(vy) - 1, step):
-                sx, sy = slice(i0, i0 + step + 1), slice(j0, j0 + step + 1)
-                verts, idx, normals = _grid_mesh(vx[sx], vy[sy], zz[sx, sy])
-                # normals from the full grid so that tiles join without shading seams
-                normals = _grid_normals(vx, vy, zz)[sx, sy].reshape(-1, 3)
-                uvs = verts[:, :2] / cfg.texture_tile_m
-                visual = c.createVisualShape(c.GEOM_MESH, vertices=verts.tolist(),
-                                             indices=idx.astype(int).tolist(),
-                                             uvs=uvs.tolist(), normals=normals.tolist())
-                body = c.createMultiBody(0, -1, visual)
-                c.changeVisualShape(body, -1, textureUniqueId=tex_id, rgbaColor=[1, 1, 1, 1],
-                                    specularColor=[0.05, 0.05, 0.05])
-                self.visual_ids.append(body)
+        for verts, idx, normals in _merge_parts(parts, _MAX_BODY_VERTICES):
+            uvs = verts[:, :2] / cfg.texture_tile_m
+            visual = c.createVisualShape(c.GEOM_MESH, vertices=verts.tolist(),
+                                         indices=idx.astype(int).tolist(), uvs=uvs.tolist(),
+                                         normals=normals.tolist())
+            body = c.createMultiBody(0, -1, visual)
+            c.changeVisualShape(body, -1, textureUniqueId=tex_id, rgbaColor=[1, 1, 1, 1],
+                                specularColor=[0.05, 0.05, 0.05])
+            self.visual_ids.append(body)
 
     # -- queries ----------------------------------------------------------------------------
     def height_at(self, xy: np.ndarray) -> np.ndarray:
