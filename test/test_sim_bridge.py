@@ -193,3 +193,27 @@ def test_valid_trajectory_is_tracked(flat_harness):
     q, _, _ = h.node.session.robot.joint_states()
     assert q[0] == pytest.approx(q1[0], abs=0.03)
     assert h.node.counters.counts.get('rejected_command_malformed', 0) == 0
+
+
+def test_capture_only_on_request(ros_context, executor):
+    h = Harness(ros_context, executor, course_class='flat', periodic_capture=False,
+                publish_ground_truth_depth=True)
+    from sensor_msgs.msg import Image as ImageMsg
+    depth_msgs = []
+    h.io.create_subscription(ImageMsg, '/ground_truth/depth', depth_msgs.append, SENSOR_QOS)
+    h.run_until_sim(0.5)
+    assert spin_until(h.ex, lambda: h.got['/joint_states'], 5.0)
+    assert not h.got['/stereo/left/image_rect'] and h.node.captures == 0
+    stamp = Header()
+    stamp.stamp.sec, stamp.stamp.nanosec = 0, 800_000_000
+    h.pub_capture.publish(stamp)
+    assert spin_until(h.ex, lambda: h.got['/stereo/left/image_rect'] and depth_msgs, 30.0)
+    t_img = stamp_to_sec(h.got['/stereo/left/image_rect'][0].header.stamp)
+    assert 0.8 - 1e-9 <= t_img <= 0.8 + 2 * h.node.session.dt_s
+    h.run_until_sim(1.5)
+    spin_until(h.ex, lambda: False, 0.3)
+    assert h.node.captures == 1 and len(h.got['/stereo/left/image_rect']) == 1
+    # the ground-truth depth belongs to the same capture and sees the floor ahead
+    depth = image_to_numpy(depth_msgs[0])
+    assert depth_msgs[0].header.stamp == h.got['/stereo/left/image_rect'][0].header.stamp
+    assert np.nanmin(depth) > 0.05 and np.isfinite(depth).mean() > 0.5

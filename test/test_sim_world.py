@@ -212,3 +212,85 @@ def test_imu_noise_is_seeded_and_bad_input_refused():
 def test_world_refuses_a_grid_without_elevation(client):
     with pytest.raises(ValueError, match='elevation'):
         SimWorld(client, GridMap(0.1, (0, 0), (4, 4), {'cost': np.zeros((4, 4))}))
+
+
+# ---- SimSession (the bridge's ROS-free core) --------------------------------------------------
+@pytest.fixture(scope='module')
+def session():
+    from terrain_perception.sim.session import SimSession, SimSessionConfig
+    s = SimSession(SimSessionConfig(course_class='flat', image_scale=0.25, shadows=False,
+                                    camera_rate_hz=4.0), world_cfg=SMALL)
+    yield s
+    s.close()
+
+
+def test_session_refuses_bad_commands_and_keeps_the_last_one(session):
+    names = list(session.model.joint_names)
+    before = session.q_target.copy()
+    q = before.copy()
+    with pytest.raises(ValueError, match='unknown joint'):
+        session.command(names[:11] + ['wing'], q[:12])
+    q_nan = q.copy()
+    q_nan[3] = np.nan
+    with pytest.raises(ValueError, match='NaN'):
+        session.command(names, q_nan)
+    q_far = q.copy()
+    q_far[5] = session.model.joint_lower[5] - 0.1
+    with pytest.raises(ValueError, match=f'{names[5]} is outside its limits'):
+        session.command(names, q_far)
+    with pytest.raises(ValueError, match='twice'):
+        session.command([names[0], names[0]], [0.0, 0.0])
+    with pytest.raises(ValueError, match='non-decreasing'):
+        session.command(names, np.stack([q, q]), times_s=[0.5, 0.1])
+    np.testing.assert_array_equal(session.q_target, before)
+
+
+def test_session_interpolates_a_trajectory_and_holds_its_end(session):
+    names = list(session.model.joint_names)
+    q0 = session.q_target.copy()
+    q1 = q0.copy()
+    q1[1] = np.clip(q0[1] + 0.1, session.model.joint_lower[1], session.model.joint_upper[1])
+    t0 = session.t_s
+    session.command(names[:3], np.stack([q0[:3], q1[:3]]), times_s=[0.0, 0.4])
+    session.step(int(round(0.2 / session.dt_s)))
+    frac = (session.t_s - session.dt_s - t0) / 0.4   # a step tracks the target at its start
+    assert session.q_target[1] == pytest.approx(q0[1] + frac * (q1[1] - q0[1]), abs=1e-9)
+    session.step(int(round(0.4 / session.dt_s)))
+    assert session.q_target[1] == pytest.approx(q1[1])
+    np.testing.assert_array_equal(session.q_target[3:], q0[3:])   # unnamed joints untouched
+    session.command(names, q0)                                     # back to standing
+    session.step(50)
+
+
+def test_session_captures_at_the_camera_rate_and_on_request(session):
+    if session.capture_due():        # a capture left due by earlier tests' stepping
+        session.mark_captured()
+    start = session.t_s
+    stamps = []
+    while session.t_s + session.dt_s < start + 1.0 - 1e-9:   # a window just under 1 s
+        session.step(1)
+        if session.capture_due():
+            stamps.append(session.render().stamp_s)
+    assert len(stamps) == 4
+    np.testing.assert_allclose(np.diff(stamps), 0.25, atol=session.dt_s + 1e-9)
+    t_req = session.t_s + 0.1
+    session.request_capture(t_req)
+    first_due = None
+    while first_due is None:
+        session.step(1)
+        if session.capture_due():
+            first_due = session.t_s
+    assert first_due == pytest.approx(min(t_req, stamps[-1] + 0.25), abs=session.dt_s)
+    cap = session.render()
+    assert cap.left.shape == (session.stereo.left.height, session.stereo.left.width, 3)
+    np.testing.assert_allclose(cap.T_world_camera, session.robot.camera_pose())
+
+
+def test_scaled_camera_keeps_the_lens():
+    from terrain_perception.sim.session import scaled_camera
+    cam = PinholeCamera.from_fov(512, 480, 50.0)
+    half = scaled_camera(cam, 0.5)
+    assert (half.width, half.height) == (256, 240)
+    p = np.array([0.1, -0.05, 1.0])
+    # the same ray lands on the same image position in pixel-edge coordinates
+    np.testing.assert_allclose((half.project(p) + 0.5) * 2.0, cam.project(p) + 0.5, atol=1e-9)
