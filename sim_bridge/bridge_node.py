@@ -189,6 +189,14 @@ class SimBridgeNode(Node):
 
     # -- the loop -----------------------------------------------------------------------------
     def _tick(self) -> None:
+        try:
+            self._run_steps()
+        except Exception:
+            if self.context.ok():
+                raise
+            # Ctrl-C / shutdown arrived mid-tick: publishing on a dead context fails; stop here.
+
+    def _run_steps(self) -> None:
         s = self.session
         wall_start = time.monotonic()
         if self._wall0 is None:
@@ -197,8 +205,8 @@ class SimBridgeNode(Node):
         if self.cfg.real_time_factor > 0:
             limit = self._sim0 + (wall_start - self._wall0) * self.cfg.real_time_factor
         while time.monotonic() - wall_start < self.cfg.tick_budget_s:
-            if s.t_s + s.dt_s > limit + 1e-12:
-                break
+            if s.t_s + s.dt_s > limit + 1e-12 or not self.context.ok():
+                break   # ahead of the real-time factor, or shutting down
             s.step(1)
             self._publish_due()
             if s.capture_due():
