@@ -602,6 +602,11 @@ def write_report(d: RunData, run_dir: Path, model=None,
         except Exception as exc:  # a figure failing must not lose the summary
             figures[name] = {'file': None, 'error': f'{type(exc).__name__}: {exc}'}
     summary['figures'] = figures
+    maps = {}
+    for name, g in (('map_fine.npz', d.map_fine), ('map_filled.npz', d.map_filled)):
+        if g is not None:
+            maps[name] = str(g.save(run_dir / name))
+    summary['maps'] = maps
     (run_dir / 'summary.json').write_text(json.dumps(summary, indent=2, default=_jsonable))
     return summary
 

@@ -298,7 +298,8 @@ def _cdr_stamp(data: bytes) -> tuple:
 class Monitor:
     """Subscribes the graph's outputs and ground truth (wall clock, no sim time)."""
 
-    def __init__(self, model, finish_x: float, publish_goal: bool) -> None:
+    def __init__(self, model, finish_x: float, publish_goal: bool,
+                 domain_id: Optional[int] = None) -> None:
         import rclpy
         from rclpy.context import Context
         from rclpy.executors import SingleThreadedExecutor
@@ -307,7 +308,10 @@ class Monitor:
         self.finish_x = finish_x
         self.publish_goal = publish_goal
         self.ctx = Context()
-        rclpy.init(context=self.ctx, signal_handler_options=SignalHandlerOptions.NO)
+        if domain_id is None:
+            domain_id = int(os.environ.get('ROS_DOMAIN_ID', '0') or 0)
+        rclpy.init(context=self.ctx, domain_id=domain_id,
+                   signal_handler_options=SignalHandlerOptions.NO)
         self.node = rclpy.create_node('terrain_demo_monitor', context=self.ctx,
                                       start_parameter_services=False)
         self.executor = SingleThreadedExecutor(context=self.ctx)
@@ -372,6 +376,10 @@ class Monitor:
         while self._running and self.ctx.ok():
             try:
                 self.executor.spin_once(timeout_sec=0.05)
+            except ValueError as exc:   # a malformed message: counted, the run goes on
+                self._count('malformed (ignored by the monitor)')
+                if self.counts['malformed (ignored by the monitor)'] == 1:
+                    print(f'[{PROG}] monitor: ignoring a malformed message: {exc}', flush=True)
             except Exception as exc:  # keep watching: one bad callback must not end the run
                 print(f'[{PROG}] monitor callback failed: {exc}', flush=True)
             if self.publish_goal and time.monotonic() >= self._next_goal:
@@ -592,6 +600,8 @@ def run(args) -> int:
             raise ToolError(f'--arg {a!r} is not of the form name:=value')
         k, v = a.split(':=', 1)
         cli[k] = v
+    if 'start_x' in cli:
+        course.start_x_m = float(cli['start_x'])
     specs = load_launch_file(launch_run, cli) if any(
         s.get('state') == 'pending' for s in status.values()) else []
     env = dict(safe_env(dict(os.environ)))
@@ -665,8 +675,10 @@ def _start_player(args, log_dir: Path, env) -> subprocess.Popen:
     exe = Path(sys.executable).parent / 'terrain-bag'
     log = open(log_dir / 'player.log', 'w', buffering=1)
     topics = _replay_topics(args.replay)
-    cmd = [str(exe), 'play', str(args.replay), '--clock', '100', '--rate',
-           str(args.replay_rate), '--delay', '3.0', '--topics', *topics]
+    # The recorded /clock is replayed as a topic: header stamps and node clocks stay on the
+    # simulated time line of the recording.
+    cmd = [str(exe), 'play', str(args.replay), '--rate', str(args.replay_rate),
+           '--delay', '3.0', '--topics', *topics]
     return subprocess.Popen(cmd, env=env, stdout=log, stderr=subprocess.STDOUT,
                             preexec_fn=_die_with_parent)
 
@@ -674,9 +686,9 @@ def _start_player(args, log_dir: Path, env) -> subprocess.Popen:
 #: What a replay feeds the perception and planning nodes (their inputs, plus the evaluation
 #: and controller topics the report reads); their own outputs are recomputed, not replayed.
 REPLAY_TOPICS = (
-    '/stereo/left/image_rect', '/stereo/right/image_rect', '/stereo/left/camera_info',
-    '/stereo/right/camera_info', '/imu/data', '/joint_states', '/odom/dead_reckoning',
-    '/capture_request', '/ground_truth/odom', '/ground_truth/terrain', '/goal_pose',
+    '/clock', '/stereo/left/image_rect', '/stereo/right/image_rect',
+    '/stereo/left/camera_info', '/stereo/right/camera_info', '/imu/data', '/joint_states',
+    '/odom/dead_reckoning', '/capture_request', '/ground_truth/odom', '/ground_truth/terrain', '/goal_pose',
 )
 
 
