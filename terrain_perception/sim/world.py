@@ -61,15 +61,18 @@ def rock_texture(seed: int, size_px: int = 1024) -> np.ndarray:
     Built in the Fourier domain, so it is periodic and tiles without seams.
     """
     rng = np.random.default_rng(np.random.SeedSequence([int(seed), 0x746578]))
-    f = np.fft.fftfreq(size_px)
+    f = np.fft.fftfreq(size_px).astype(np.float32)
     fr = np.sqrt(f[:, None] ** 2 + f[None, :] ** 2)
     fr[0, 0] = 1.0
+    log_fr = np.log(fr)
 
     def fractal(exponent: float, lo_cut: float = 0.0) -> np.ndarray:
-        spec = (rng.normal(size=fr.shape) + 1j * rng.normal(size=fr.shape)) / fr ** exponent
+        noise = rng.standard_normal(fr.shape, dtype=np.float32) \
+            + 1j * rng.standard_normal(fr.shape, dtype=np.float32)
+        spec = noise * np.exp(-exponent * log_fr)      # amplitude ~ 1 / f^exponent
         spec[fr < lo_cut] = 0.0
         spec[0, 0] = 0.0
-        img = np.real(np.fft.ifft2(spec))
+        img = np.fft.ifft2(spec).real
         return (img - img.mean()) / (img.std() + 1e-12)
 
     mix = fractal(1.6)                      # large patches: soil vs rock
