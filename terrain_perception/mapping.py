@@ -54,7 +54,7 @@ class MapperConfig:
     max_range_m: float = param(1.5, 'farthest z-depth [m] of a cloud point used', 0.1, 20.0)
     min_points: int = param(200, 'fewest valid points a cloud needs', 10, 10_000_000)
     # ---- coarse model / ICP
-    coarse_stride_px: int = param(4, 'pixel stride sub-sampling an organized cloud for ICP',
+    coarse_stride_px: int = param(8, 'pixel stride sub-sampling an organized cloud for ICP',
                                   1, 64)
     coarse_voxel_m: float = param(0.01, 'voxel size [m] of the ICP source and coarse model',
                                   0.001, 0.5)
@@ -81,7 +81,7 @@ class MapperConfig:
     robust_kernel: str = param('tukey', 'robust loss on point-to-plane residuals',
                                choices=('none', 'huber', 'tukey', 'cauchy', 'gm', 'l1'))
     kernel_scale_m: float = param(0.01, 'robust kernel scale [m]', 1e-5, 1.0)
-    degeneracy_threshold: float = param(0.0, 'keep the prior along directions whose normalised '
+    degeneracy_threshold: float = param(1e-3, 'keep the prior along directions whose normalised '
                                         'point-to-plane information is below this (0 = off)',
                                         0.0, 1.0)
     # ---- guards
@@ -119,7 +119,7 @@ class MapperConfig:
     fine_resolution_m: float = param(0.01, 'fine height-map cell size [m]', 0.001, 1.0)
     fine_size_m: float = param(3.0, 'edge length [m] of the square fine map around the robot',
                                0.1, 100.0)
-    fine_stride_px: int = param(1, 'pixel stride of the organized cloud fused into the fine map',
+    fine_stride_px: int = param(2, 'pixel stride of the organized cloud fused into the fine map',
                                 1, 64)
     fine_estimator: str = param('plane', 'cell height: mean of samples, or the cell-centre '
                                 'value of a per-cell least-squares plane',
@@ -691,7 +691,8 @@ class IcpMapper:
 
     def update(self, cloud_camera: np.ndarray, T_odom_base: np.ndarray, stamp_s: float,
                coarse_camera: Optional[np.ndarray] = None,
-               up_camera: Optional[np.ndarray] = None) -> MapperUpdate:
+               up_camera: Optional[np.ndarray] = None,
+               prepared: Optional[Tuple[np.ndarray, np.ndarray]] = None) -> MapperUpdate:
         """Localise and fuse one capture.
 
         Args:
@@ -701,6 +702,8 @@ class IcpMapper:
             stamp_s: capture time [s]; must not be older than the map (stamp_tolerance_s).
             coarse_camera: optional separate sparse cloud for ICP (else sub-sampled).
             up_camera: optional measured up direction in the camera frame (gravity prior).
+            prepared: the result of :meth:`prepare` for this cloud, if the caller validated it
+                already (saves the second pass).
 
         Returns:
             :class:`MapperUpdate`. Raises ValueError for bad input; then nothing changes.
@@ -712,7 +715,8 @@ class IcpMapper:
             raise ValueError(f'cloud at {stamp_s:.3f} s is older than the map '
                              f'({self._last_stamp:.3f} s)')
         T_odom_base = _check_T(T_odom_base, 'T_odom_base')
-        fine, src = self.prepare(cloud_camera, coarse_camera)
+        fine, src = prepared if prepared is not None else self.prepare(cloud_camera,
+                                                                        coarse_camera)
         if up_camera is not None:
             up_camera = np.asarray(up_camera, dtype=np.float64).reshape(3)
             if not np.all(np.isfinite(up_camera)) or np.linalg.norm(up_camera) < 1e-6:

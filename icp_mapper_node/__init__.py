@@ -1,0 +1,1 @@
+"""icp_mapper node: dead-reckoning-seeded ICP localisation and the coarse and fine terrain maps."""

@@ -1,0 +1,227 @@
+"""icp_mapper: localise each capture against the terrain (ICP seeded by dead reckoning) and keep
+the coarse and fine terrain models (paper 000, section II; core: terrain_perception.mapping).
+
+Subscriptions:
+    /stereo/points         sensor_msgs/PointCloud2, organized, camera-optical frame (sensor data)
+    /stereo/points_coarse  sensor_msgs/PointCloud2, its sparse subsample (sensor data; used for
+                           ICP when ``use_coarse_cloud`` and one with the same stamp arrived)
+    /odom/dead_reckoning   nav_msgs/Odometry, ``T_odom_base`` (reliable)
+    /imu/data              sensor_msgs/Imu (sensor data; only with ``use_gravity_prior``)
+Publications:
+    /icp/pose              geometry_msgs/PoseStamped, ``T_map_base`` of each capture (reliable)
+    /icp/odom              nav_msgs/Odometry, the same with dead reckoning's twist (reliable)
+    /icp/correction        geometry_msgs/PoseStamped, ``T_map_odom`` to re-anchor dead
+                           reckoning (reliable, transient local)
+    /map/fine              terrain_msgs/TerrainGrid: elevation, observed, variance, min, max,
+                           count, last_seen (reliable, transient local)
+    /map/coarse            sensor_msgs/PointCloud2, the ICP model in ``map`` (reliable,
+                           transient local)
+    /map/capture_poses     geometry_msgs/PoseArray, camera poses kept with the map (reliable,
+                           transient local)
+    ~/diagnostics          diagnostic_msgs/DiagnosticArray: counters of refused input and
+                           rejected alignments
+
+The camera mount ``T_base_camera`` (and the IMU mount) come from the robot profile named by
+the ``robot`` parameter. The dead-reckoning pose at a cloud's stamp is interpolated from the
+odometry received so far. Every refused input (malformed / empty / all-NaN cloud, cloud older
+than the map, odometry that goes back in time or jumps, no odometry for the cloud's stamp) is
+counted under its reason key and logged once (then every 100th time); the maps are untouched.
+A rejected alignment is counted too; the pose published for it is the dead-reckoning prior.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Dict, Optional
+
+import numpy as np
+from geometry_msgs.msg import PoseArray, PoseStamped
+from nav_msgs.msg import Odometry
+from rclpy.node import Node
+from sensor_msgs.msg import Imu, PointCloud2
+from terrain_msgs.msg import TerrainGrid
+
+from terrain_perception.config import param
+from terrain_perception.mapping import IcpMapper, MapperConfig, OdometryGate, PoseBuffer
+from terrain_perception.robot_model import load_robot_model
+from terrain_ros.conversions import (cloud_to_xyz, grid_to_msg, make_header, matrix_to_pose,
+                                     odometry, pose_stamped, pose_to_matrix, stamp_to_sec,
+                                     xyz_to_cloud)
+from terrain_ros.node import Counters, run_node
+from terrain_ros.params import declare_config
+from terrain_ros.qos import LATCHED_QOS, RELIABLE_QOS, SENSOR_QOS
+
+
+@dataclass(frozen=True)
+class IcpMapperNodeConfig:
+    """Node-level parameters (the algorithm's own are :class:`MapperConfig`)."""
+
+    robot: str = param('littledog', 'robot profile (config/robots/<name>.yaml) giving the '
+                       'camera and IMU mounts')
+    map_frame: str = param('map', 'frame of the maps and corrected poses')
+    base_frame: str = param('base_link', 'body frame (child frame of /icp/odom)')
+    use_coarse_cloud: bool = param(True, 'align /stereo/points_coarse when one with the '
+                                   'cloud\'s stamp arrived, else subsample /stereo/points')
+    odom_buffer_size: int = param(400, 'dead-reckoning poses kept for interpolation', 2, 100000)
+    odom_max_extrapolation_s: float = param(0.25, 'a cloud may be this much newer [s] than the '
+                                            'newest odometry', 0.0, 10.0)
+    odom_max_speed_m_s: float = param(1.0, 'odometry moving faster than this [m/s] jumped',
+                                      0.01, 100.0)
+    odom_max_yaw_rate_deg_s: float = param(180.0, 'odometry turning faster than this [deg/s] '
+                                           'jumped', 1.0, 10000.0)
+    coarse_publish_every: int = param(5, 'publish /map/coarse every n-th fused capture', 1,
+                                      1000)
+    diagnostics_period_s: float = param(1.0, 'period of the counters message [s]', 0.05,
+                                        3600.0)
+
+
+def _odom_key(reason: str) -> str:
+    if 'back in time' in reason:
+        return 'odom_back_in_time'
+    if 'jumped' in reason or 'turned' in reason:
+        return 'odom_jump'
+    return 'odom_invalid'
+
+
+def _cloud_key(reason: str) -> str:
+    for text, key in (('empty', 'empty_cloud'), ('no finite point', 'all_nan_cloud'),
+                      ('older than the map', 'cloud_older_than_map'),
+                      ('no field', 'cloud_missing_xyz'), ('not a float', 'cloud_not_float'),
+                      ('valid points', 'too_few_points'), ('odometry', 'no_odometry')):
+        if text in reason:
+            return key
+    return 'bad_cloud'
+
+
+class IcpMapperNode(Node):
+    """Dead-reckoning-seeded ICP localisation and terrain mapping; see the module docstring."""
+
+    def __init__(self, **kwargs) -> None:
+        super().__init__('icp_mapper', **kwargs)
+        self.node_cfg: IcpMapperNodeConfig = declare_config(self, IcpMapperNodeConfig)
+        self.mapper_cfg: MapperConfig = declare_config(self, MapperConfig)
+        self.robot = load_robot_model(self.node_cfg.robot)
+        self.T_base_camera = np.asarray(self.robot.T_base_camera)
+        self.mapper = IcpMapper(self.mapper_cfg, self.T_base_camera)
+        c = self.node_cfg
+        self.odom = PoseBuffer(c.odom_buffer_size, c.odom_max_extrapolation_s)
+        self.gate = OdometryGate(c.odom_max_speed_m_s, c.odom_max_yaw_rate_deg_s)
+        self.counters = Counters(self)
+        self._coarse: Dict[tuple, PointCloud2] = {}
+        self._twist = None
+        self._up_base: Optional[np.ndarray] = None
+        self.captures = 0
+
+        self.pub_pose = self.create_publisher(PoseStamped, '/icp/pose', RELIABLE_QOS)
+        self.pub_odom = self.create_publisher(Odometry, '/icp/odom', RELIABLE_QOS)
+        self.pub_corr = self.create_publisher(PoseStamped, '/icp/correction', LATCHED_QOS)
+        self.pub_fine = self.create_publisher(TerrainGrid, '/map/fine', LATCHED_QOS)
+        self.pub_coarse = self.create_publisher(PointCloud2, '/map/coarse', LATCHED_QOS)
+        self.pub_poses = self.create_publisher(PoseArray, '/map/capture_poses', LATCHED_QOS)
+
+        self.create_subscription(Odometry, '/odom/dead_reckoning', self._on_odom, RELIABLE_QOS)
+        self.create_subscription(PointCloud2, '/stereo/points', self._on_cloud, SENSOR_QOS)
+        if c.use_coarse_cloud:
+            self.create_subscription(PointCloud2, '/stereo/points_coarse', self._on_coarse,
+                                     SENSOR_QOS)
+        if self.mapper_cfg.use_gravity_prior:
+            self.create_subscription(Imu, '/imu/data', self._on_imu, SENSOR_QOS)
+        self.create_timer(c.diagnostics_period_s, self._publish_diagnostics)
+        self.get_logger().info(f'icp_mapper: robot {self.robot.name}, fine map '
+                               f'{self.mapper.fine.shape} cells of '
+                               f'{self.mapper_cfg.fine_resolution_m} m')
+
+    # ------------------------------------------------------------------ inputs
+
+    def _on_odom(self, msg: Odometry) -> None:
+        try:
+            t = stamp_to_sec(msg.header.stamp)
+            T = pose_to_matrix(msg.pose.pose)
+            self.gate.check(t, T)
+            self.odom.add(t, T)
+        except ValueError as exc:
+            self.counters.bump(_odom_key(str(exc)), str(exc))
+            return
+        self._twist = msg.twist.twist
+
+    def _on_coarse(self, msg: PointCloud2) -> None:
+        key = (msg.header.stamp.sec, msg.header.stamp.nanosec)
+        self._coarse[key] = msg
+        while len(self._coarse) > 5:  # bounded: only the latest few wait for their fine cloud
+            self._coarse.pop(next(iter(self._coarse)))
+
+    def _on_imu(self, msg: Imu) -> None:
+        a = msg.linear_acceleration
+        f = np.array([a.x, a.y, a.z], dtype=np.float64)
+        n = np.linalg.norm(f)
+        if not np.isfinite(n) or n < 1.0:
+            self.counters.bump('bad_imu', f'IMU specific force {n:.2f} m/s^2 is not gravity-like')
+            return
+        # at rest the accelerometer measures +g along "up"
+        self._up_base = np.asarray(self.robot.T_base_imu)[:3, :3] @ (f / n)
+
+    def _on_cloud(self, msg: PointCloud2) -> None:
+        t = stamp_to_sec(msg.header.stamp)
+        try:
+            cloud = cloud_to_xyz(msg)
+            if cloud.size == 0:
+                raise ValueError('empty cloud (no points)')
+            coarse = None
+            key = (msg.header.stamp.sec, msg.header.stamp.nanosec)
+            if key in self._coarse:
+                coarse = cloud_to_xyz(self._coarse.pop(key))
+            if t < self.mapper.stamp_s - self.mapper_cfg.stamp_tolerance_s:
+                raise ValueError(f'cloud at {t:.3f} s is older than the map '
+                                 f'({self.mapper.stamp_s:.3f} s)')
+            prepared = self.mapper.prepare(cloud, coarse)  # content first, then odometry
+            T_odom_base = self.odom.at(t)
+            up_cam = None
+            if self._up_base is not None:
+                up_cam = self.T_base_camera[:3, :3].T @ self._up_base
+            res = self.mapper.update(cloud, T_odom_base, t, up_camera=up_cam,
+                                     prepared=prepared)
+        except ValueError as exc:
+            self.counters.bump(_cloud_key(str(exc)), str(exc))
+            return
+        self.captures += 1
+        if not res.accepted:
+            self.counters.bump('rejected_alignment', res.reason)
+        self._publish(res, msg.header.stamp)
+
+    # ------------------------------------------------------------------ outputs
+
+    def _publish(self, res, stamp) -> None:
+        c = self.node_cfg
+        self.pub_pose.publish(pose_stamped(res.T_map_base, c.map_frame, stamp))
+        tw = self._twist
+        lin = (tw.linear.x, tw.linear.y, tw.linear.z) if tw is not None else (0, 0, 0)
+        ang = (tw.angular.x, tw.angular.y, tw.angular.z) if tw is not None else (0, 0, 0)
+        self.pub_odom.publish(odometry(res.T_map_base, c.map_frame, c.base_frame, stamp,
+                                       lin, ang))
+        self.pub_corr.publish(pose_stamped(self.mapper.T_map_odom, c.map_frame, stamp))
+        if not res.fused:
+            return
+        grid = self.mapper.fine_grid(c.map_frame)
+        grid.metadata.clear()  # capture poses go out on their own topic
+        self.pub_fine.publish(grid_to_msg(grid, stamp, basic_layers=('elevation',)))
+        _, poses = self.mapper.capture_poses()
+        arr = PoseArray(header=make_header(c.map_frame, stamp))
+        arr.poses = [matrix_to_pose(T) for T in poses]
+        self.pub_poses.publish(arr)
+        if self.mapper.counters['fused'] % c.coarse_publish_every == 1 \
+                or c.coarse_publish_every == 1:
+            self.pub_coarse.publish(xyz_to_cloud(self.mapper.coarse_points(), c.map_frame,
+                                                 stamp))
+
+    def _publish_diagnostics(self) -> None:
+        for k, v in self.mapper.counters.items():
+            self.counters.counts[f'mapper_{k}'] = v
+        self.counters.publish()
+
+
+def main(args=None) -> int:
+    return run_node(IcpMapperNode, args=args)
+
+
+if __name__ == '__main__':
+    main()
