@@ -6,10 +6,12 @@
 * **Receding-horizon search** (paper 000 sec. IV): the next ``horizon_steps`` footsteps in crawl
   order LH, LF, RH, RF, by a small beam search. Each foothold is a cell of its leg's search area
   that (a) has a finite cost, (b) was observed, or was filled with a finite line-of-sight upper
-  bound close to its value, (c) is within the leg's reach (analytic IK within joint limits, with
-  a reach margin) from the body pose during the swing, and (d) leaves the next swing's support
-  triangle able to hold the COG with ``stability_margin_m``. Salient contact patches
-  (:mod:`terrain_perception.patches`) near a cell lower its cost.
+  bound close to its value, (c) is safe for the foot on the map (:func:`unsafe_cells`: slope and
+  unevenness limits), (d) is within the leg's reach (analytic IK within joint limits, with a
+  reach margin) from the body pose during the swing, and (e) leaves the next swing's support
+  triangle able to hold the COG with ``stability_margin_m`` within reach. Among those, the
+  foothold minimises omega x (cost + distance from the nominal foothold + height change).
+  Salient contact patches (:mod:`terrain_perception.patches`) near a cell lower its cost.
 * **Gait selection** (paper 002 Fig. 4): per gait period the body advances ``A``; each leg's
   search area is ``[kL_{i-1}, wL_{i-1} + 2A]`` along the walking direction. If every cell of all
   four areas has Shao cost ``|h - ground| + Dev(h)`` below ``Threshold`` and every foot is in
@@ -74,6 +76,8 @@ class PlannerConfig:
                                0.0, 1e3)
     stability_margin_m: float = param(0.01, 'least distance from the COG to the support '
                                       'triangle edges during a swing [m]', 0.0, 1.0)
+    min_crouch: float = param(0.8, 'lowest body height as a share of the standing height when '
+                              'crouching keeps the legs in reach', 0.3, 1.0)
     reach_fraction: float = param(0.95, 'largest hip-to-foot distance as a share of the leg '
                                   'length', 0.1, 1.0)
     max_bound_gap_m: float = param(
@@ -82,13 +86,29 @@ class PlannerConfig:
     step_height_weight_per_m: float = param(
         2.0, 'cost per metre between a foothold and the mean height of the current stance '
         '[1/m]; keeps the body level enough for the other legs to stay in reach', 0.0, 1e4)
+    max_slope_deg: float = param(30.0, 'steepest foothold (local plane over ~4 foot radii) '
+                                 '[deg]: the feet friction limit atan(1.2) = 50 deg with margin',
+                                 0.0, 90.0)
+    max_unevenness: float = param(0.5, 'largest RMS deviation of the heights under the foot from '
+                                  'their plane, in foot radii (edges, cracks, knobs); 0 = no '
+                                  'safety filter', 0.0, 100.0)
+    nominal_weight_per_m2: float = param(
+        20.0, "cost per square metre of distance from the stride rule's foothold (the search "
+        'area centre): keeps legs from lagging into dead ends [1/m^2]', 0.0, 1e6)
     patch_bonus: float = param(0.3, 'cost reduction factor for cells within a salient contact '
                                "patch's radius (0 = ignore patches)", 0.0, 1.0)
     beam_width: int = param(4, 'partial plans kept per step of the search', 1, 64)
     candidates_per_step: int = param(6, 'best footholds expanded per partial plan and step',
                                      1, 64)
+    max_turn_rad: float = param(0.1, 'largest heading change towards the goal per plan [rad]',
+                                0.0, 3.2)
     goal_tolerance_m: float = param(0.03, 'body within this distance of the goal = reached [m]',
                                     0.0, 10.0)
+    selection: str = param('cost', "foothold choice: 'cost' (this planner), or the benchmark "
+                           "baselines 'nominal' (greedy: the search-area centre, cost ignored) "
+                           "and 'random' (any feasible cell)",
+                           choices=('cost', 'nominal', 'random'))
+    random_seed: int = param(0, "seed of the 'random' baseline", 0, 2**31 - 1)
 
 
 @dataclass
@@ -99,6 +119,8 @@ class Footstep:
         leg: 0..3 (LF, RF, LH, RH). position: (3,) ground contact point [m, map].
         cost: foothold cost at the cell. step_index: 0 = next. patch_index: -1 = none.
         body_xy: (2,) COG position [m, map] while this leg swings.
+        body_height_m: base height above the feet's plane during the swing [m] (the planner
+            crouches below the standing height when that keeps every leg in reach).
     """
 
     leg: int
@@ -107,6 +129,7 @@ class Footstep:
     step_index: int
     patch_index: int = -1
     body_xy: np.ndarray = field(default_factory=lambda: np.full(2, np.nan))
+    body_height_m: float = np.nan
 
 
 @dataclass
@@ -163,6 +186,34 @@ def flatness_cost(heights: np.ndarray, ground_z: float) -> np.ndarray:
     mistaken for flat ground). Dev comes from :func:`terrain_perception.features.shao_dev`."""
     h = np.asarray(heights, dtype=np.float64)
     return np.abs(h - ground_z) + features.shao_dev(h)
+
+
+def unsafe_cells(heights: np.ndarray, resolution_m: float, foot_radius_m: float,
+                 max_slope_deg: float = 30.0, rms_fraction: float = 0.5) -> np.ndarray:
+    """Cells where a ball foot of radius ``rho = foot_radius_m`` [m] is unsafe: within the
+    square of side ~4 rho around the cell, the heights' RMS deviation from their least-squares
+    plane exceeds ``rms_fraction * rho`` (an edge, a crack or a knob under the foot), or the plane
+    is steeper than ``max_slope_deg`` (the friction limit with margin). Unknown cells and windows
+    with unknown heights are not flagged (the caller masks unknown cells separately)."""
+    from scipy import ndimage
+    h = np.asarray(heights, dtype=np.float64)
+    r = max(1, int(round(2 * foot_radius_m / resolution_m)))
+    u = np.arange(-r, r + 1, dtype=np.float64)
+    n2 = float(len(u)) ** 2
+    box = np.ones_like(u)
+
+    def sep(a, k0, k1):
+        a = ndimage.correlate1d(a, k0, axis=0, mode='nearest')
+        return ndimage.correlate1d(a, k1, axis=1, mode='nearest')
+
+    m = sep(h, box, box) / n2
+    var = sep(h * h, box, box) / n2 - m * m
+    su2 = float(np.mean(u * u))
+    cu, cv = sep(h, u, box) / n2, sep(h, box, u) / n2
+    rms = np.sqrt(np.maximum(var - (cu * cu + cv * cv) / su2, 0.0))
+    slope = np.hypot(cu, cv) / su2 / resolution_m
+    with np.errstate(invalid='ignore'):
+        return (rms > rms_fraction * foot_radius_m) | (slope > np.tan(np.radians(max_slope_deg)))
 
 
 def candidate_mask(grid: GridMap, cfg: PlannerConfig) -> np.ndarray:
@@ -242,7 +293,7 @@ def point_in_triangle_margin(p: np.ndarray, tri: np.ndarray) -> float:
 
 
 def body_pose(body_xy: np.ndarray, feet: np.ndarray, yaw: float, robot: RobotModel,
-              max_tilt_rad: float = 0.35) -> np.ndarray:
+              max_tilt_rad: float = 0.35, height_m: Optional[float] = None) -> np.ndarray:
     """Planned base pose (4x4) over the feet (4, 3) [m]: heading ``yaw``, z axis along the normal
     of the least-squares plane through the foot contacts (tilt capped at ``max_tilt_rad``), origin
     the standing height along that normal above the plane at ``body_xy``. Following the feet's
@@ -264,7 +315,8 @@ def body_pose(body_xy: np.ndarray, feet: np.ndarray, yaw: float, robot: RobotMod
     T[:3, :3] = np.c_[x, np.cross(n, x), n]
     xy = np.asarray(body_xy, dtype=np.float64)
     z_plane = sol[0] + np.dot(grad, xy - feet[:, :2].mean(0))
-    T[:3, 3] = np.array([xy[0], xy[1], z_plane]) + robot.standing_height_m * n
+    height = robot.standing_height_m if height_m is None else float(height_m)
+    T[:3, 3] = np.array([xy[0], xy[1], z_plane]) + height * n
     return T
 
 
@@ -277,12 +329,23 @@ def reachable(robot: RobotModel, T_map_base: np.ndarray, feet_map: np.ndarray, l
     R, t = T_map_base[:3, :3], T_map_base[:3, 3]
     centre = feet_map + np.array([0.0, 0.0, robot.foot_radius_m])
     p_base = (centre - t) @ R
+    if len(legs) == 4 and np.array_equal(legs, np.arange(4)):   # one stance: one IK call
+        return stance_in_reach(robot, p_base[None], reach_fraction)[0]
     targets = np.broadcast_to(np.array(robot.nominal_feet) + [0, 0, robot.foot_radius_m],
                               (len(p_base), 4, 3)).copy()
     targets[np.arange(len(p_base)), legs] = p_base
     ok = solve_ik(robot, targets).ok[np.arange(len(p_base)), legs]
     flex = np.array(robot.leg_plane_offsets)[legs]
     dist = np.linalg.norm(p_base - flex, axis=1)
+    return ok & (dist <= reach_fraction * robot.leg_length_m)
+
+
+def stance_in_reach(robot: RobotModel, feet_base: np.ndarray,
+                    reach_fraction: float) -> np.ndarray:
+    """(P, 4) reachability of foot-sphere centres ``feet_base`` (P, 4, 3) [m, base_link]: IK
+    within joint limits and hip-to-foot distance <= ``reach_fraction`` x leg length."""
+    ok = solve_ik(robot, feet_base).ok
+    dist = np.linalg.norm(feet_base - np.array(robot.leg_plane_offsets), axis=-1)
     return ok & (dist <= reach_fraction * robot.leg_length_m)
 
 
@@ -296,6 +359,8 @@ class _State:
     total: float                # accumulated weighted cost
     steps: List[Footstep]
     period_feet: np.ndarray     # (4, 3) feet at the start of the current gait period
+    swing: tuple = ()           # (cog, T_map_base, height) for the next swing from ``feet``
+    cands: Optional[tuple] = None   # scored footholds of the next swing (cached lookahead)
 
 
 class FootstepPlanner:
@@ -315,6 +380,7 @@ class FootstepPlanner:
         self.grid: Optional[GridMap] = None
         self.cost: Optional[np.ndarray] = None
         self.allowed: Optional[np.ndarray] = None
+        self._rng = np.random.default_rng(config.random_seed)
 
     @property
     def A(self) -> float:
@@ -341,6 +407,10 @@ class FootstepPlanner:
             return failed(STATUS_BAD_MAP, 'cost layer has no finite value')
         self.grid, self.cost = grid, cost
         self.allowed = candidate_mask(grid, self.cfg) & np.isfinite(cost)
+        if self.cfg.max_unevenness > 0:
+            self.allowed &= ~unsafe_cells(grid[ELEVATION], grid.resolution_m,
+                                          self.robot.foot_radius_m, self.cfg.max_slope_deg,
+                                          self.cfg.max_unevenness)
         return None
 
     # ---- helpers ---------------------------------------------------------------------------
@@ -414,7 +484,7 @@ class FootstepPlanner:
     def plan(self, T_map_base: np.ndarray, goal_xy: Optional[np.ndarray] = None,
              feet: Optional[np.ndarray] = None, patches: Optional[Tuple[np.ndarray,
                                                                          np.ndarray]] = None,
-             first_leg: int = LH) -> FootstepPlan:
+             first_leg: Optional[int] = None) -> FootstepPlan:
         """Plan the next ``horizon_steps`` footsteps.
 
         Args:
@@ -423,7 +493,8 @@ class FootstepPlanner:
             feet: (4, 3) current contact points [m, map]; None = nominal stance at the pose.
             patches: optional ``(vertices (N, 3), radii (N,))`` of salient contact patches in
                 the map frame.
-            first_leg: the leg to move first in a walk (crawl order continues from it).
+            first_leg: the leg to move first in a walk (crawl order continues from it); None =
+                the leg furthest behind its nominal place (ties: the first in crawl order).
 
         Returns:
             A plan; never raises on bad input (the status says what is wrong).
@@ -433,7 +504,7 @@ class FootstepPlanner:
         T = np.asarray(T_map_base, dtype=np.float64)
         if T.shape != (4, 4) or not np.all(np.isfinite(T)):
             return failed(STATUS_BAD_INPUT, 'robot pose is not a finite 4x4 transform')
-        if first_leg not in CRAWL_ORDER:
+        if first_leg is not None and first_leg not in CRAWL_ORDER:
             return failed(STATUS_BAD_INPUT, f'first_leg must be one of 0..3, got {first_leg}')
         g = self.grid
         body_xy = T[:2, 3]
@@ -442,8 +513,9 @@ class FootstepPlanner:
                           f'robot at ({body_xy[0]:.3f}, {body_xy[1]:.3f}) m is outside the map '
                           f'[{g.origin_xy[0]:.3f}..{g.origin_xy[0] + g.length_xy[0]:.3f}] x '
                           f'[{g.origin_xy[1]:.3f}..{g.origin_xy[1] + g.length_xy[1]:.3f}]')
+        yaw_now = float(np.arctan2(T[1, 0], T[0, 0]))
         if goal_xy is None:
-            yaw = float(np.arctan2(T[1, 0], T[0, 0]))
+            yaw = yaw_now
             remaining = np.inf
         else:
             goal = np.asarray(goal_xy, dtype=np.float64).reshape(-1)[:2]
@@ -454,31 +526,46 @@ class FootstepPlanner:
             if remaining <= self.cfg.goal_tolerance_m:
                 return FootstepPlan(STATUS_GOAL_REACHED, f'goal reached ({remaining:.3f} m away)',
                                     final_body_pose=T.copy())
-            if not g.inside(g.world_to_index(goal)):
-                return failed(STATUS_BAD_INPUT,
-                              f'goal ({goal[0]:.3f}, {goal[1]:.3f}) m is outside the map: it '
-                              f'cannot be reached on this map')
-            yaw = float(np.arctan2(d[1], d[0]))
-        self.hdir = np.array([np.cos(yaw), np.sin(yaw)])
-        self.ldir = np.array([-self.hdir[1], self.hdir[0]])
-        self.origin = body_xy.copy()
-        Tb = T.copy()
-        Tb[:3, :3] = body_pose(body_xy, np.zeros((4, 3)), yaw, self.robot)[:3, :3]
+            # Turn towards the goal at most max_turn_rad per plan: a sudden heading change
+            # would rotate the hips away from feet planned for the old heading.
+            turn = (np.arctan2(d[1], d[0]) - yaw_now + np.pi) % (2 * np.pi) - np.pi
+            yaw = yaw_now + float(np.clip(turn, -self.cfg.max_turn_rad, self.cfg.max_turn_rad))
         if feet is None:
+            Tb = T.copy()
+            Tb[:3, :3] = body_pose(body_xy, np.zeros((4, 3)), yaw_now, self.robot)[:3, :3]
             feet = self._nominal_feet(Tb)
         feet = np.asarray(feet, dtype=np.float64)
         if feet.shape != (4, 3) or not np.all(np.isfinite(feet)):
             return failed(STATUS_BAD_INPUT, f'feet must be a finite (4, 3) array, got {feet}')
-        nom = np.array(self.robot.nominal_feet)
-        self.nom_u, self.nom_v = nom[:, 0], nom[:, 1]
-        A = float(min(self.A, remaining))
         if patches is not None:
             pv, pr = (np.asarray(patches[0], dtype=np.float64).reshape(-1, 3),
                       np.asarray(patches[1], dtype=np.float64).reshape(-1))
             self.patches = (pv, pr) if len(pv) else None
         else:
             self.patches = None
+        plan = self._plan_heading(feet, body_xy, yaw, remaining, first_leg)
+        if not plan.ok and yaw != yaw_now:
+            # Turning made the stance infeasible: keep the current heading this time.
+            keep = self._plan_heading(feet, body_xy, yaw_now, remaining, first_leg)
+            if keep.ok:
+                keep.status_text += ' (turn towards the goal postponed)'
+                plan, yaw = keep, yaw_now
+        plan.initial_feet = feet.copy()
+        plan.yaw = yaw
+        return plan
 
+    def _plan_heading(self, feet, body_xy, yaw, remaining, first_leg) -> FootstepPlan:
+        """Gait selection then trot or crawl search, walking along heading ``yaw``."""
+        self.hdir = np.array([np.cos(yaw), np.sin(yaw)])
+        self.ldir = np.array([-self.hdir[1], self.hdir[0]])
+        self.origin = np.asarray(body_xy, dtype=np.float64).copy()
+        nom = np.array(self.robot.nominal_feet)
+        self.nom_u, self.nom_v = nom[:, 0], nom[:, 1]
+        A = float(min(self.A, remaining))
+        if first_leg is None:
+            behind = self._uv(feet)[0] - self.nom_u
+            first_leg = min(CRAWL_ORDER, key=lambda k: (round(behind[k], 6),
+                                                        CRAWL_ORDER.index(k)))
         gait, why = self.select_gait(feet, 0.0, A)
         plan = None
         if gait == GAIT_TROT:
@@ -491,8 +578,6 @@ class FootstepPlanner:
             plan = self._plan_walk(feet, yaw, A, remaining, first_leg)
             if plan.ok:
                 plan.status_text = f'walk: {why}; ' + plan.status_text
-        plan.initial_feet = feet.copy()
-        plan.yaw = yaw
         return plan
 
     # ---- trot ------------------------------------------------------------------------------
@@ -530,7 +615,8 @@ class FootstepPlanner:
                     return None if not steps else self._finish(steps, cur, yaw, GAIT_TROT, A)
                 for leg, p in zip(pair, new[list(pair)]):
                     c = float(self.cost[tuple(g.world_to_index(p[:2]))])
-                    steps.append(Footstep(leg, p.copy(), c, idx, -1, body_xy.copy()))
+                    steps.append(Footstep(leg, p.copy(), c, idx, -1, body_xy.copy(),
+                                          self.robot.standing_height_m))
                 cur = new
                 idx += 1
             wL = wL_new
@@ -546,6 +632,24 @@ class FootstepPlanner:
         T = body_pose(body_xy, feet, yaw, self.robot)
         n = len({s.step_index for s in steps})
         return FootstepPlan(STATUS_OK, text or f'{n} step(s) planned', gait, steps, T, A)
+
+    def _body_in_reach(self, body_xy, feet, yaw) -> Optional[np.ndarray]:
+        """Body pose over ``feet`` at ``body_xy`` with every foot in reach: standing height
+        first, then crouching (posture adjustment) down to ``min_crouch`` of it."""
+        levels = np.linspace(1.0, self.cfg.min_crouch, 4)
+        T = body_pose(body_xy, feet, yaw, self.robot)
+        p = (feet + [0.0, 0.0, self.robot.foot_radius_m] - T[:3, 3]) @ T[:3, :3]
+        # Lowering the base by dh along its own z raises every foot by dh in base_link.
+        drop = (1.0 - levels) * self.robot.standing_height_m
+        P = p[None] + drop[:, None, None] * np.array([0.0, 0.0, 1.0])
+        ok = np.all(stance_in_reach(self.robot, P, self.cfg.reach_fraction), axis=1)
+        if not np.any(ok):
+            return None
+        k = int(np.argmax(ok))
+        self._last_crouch = float(levels[k])
+        T = T.copy()
+        T[:3, 3] -= drop[k] * T[:3, 2]
+        return T
 
     # ---- walk (crawl) beam search ------------------------------------------------------------
     def _candidates(self, state: _State, leg: int, feet0: np.ndarray, wL0: float, A: float,
@@ -570,7 +674,10 @@ class FootstepPlanner:
         omega = (cfg.distance_weight_gain * ((u - centre) ** 2 + (v - self.nom_v[leg]) ** 2)
                  + A) / max(A, 1e-9)
         dz = np.abs(pts[:, 2] - float(np.mean(state.feet[:, 2])))
-        J = omega * (np.maximum(cost, 0.0) + cfg.cost_offset + cfg.step_height_weight_per_m * dz)
+        # Distance from the stride-rule foothold (the area centre, paper 002 Fig. 4).
+        d2 = (u - centre) ** 2 + (v - self.nom_v[leg]) ** 2
+        J = omega * (np.maximum(cost, 0.0) + cfg.cost_offset + cfg.step_height_weight_per_m * dz
+                     + cfg.nominal_weight_per_m2 * d2)
         pidx = np.full(len(pts), -1)
         if self.patches is not None and cfg.patch_bonus > 0:
             pv, pr = self.patches
@@ -579,60 +686,111 @@ class FootstepPlanner:
             hit = d[np.arange(len(pts)), near] <= 0
             pidx = np.where(hit, near, -1)
             J = np.where(hit, J * (1.0 - cfg.patch_bonus), J)
+        if cfg.selection == 'nominal':
+            J = omega
+        elif cfg.selection == 'random':
+            J = self._rng.random(len(J))
         order = np.argsort(J, kind='stable')[:cfg.candidates_per_step]
         return (pts[order], cost[order], J[order], pidx[order]), ''
 
+    def _swing_pose(self, feet: np.ndarray, leg: int, yaw: float, A: float,
+                    remaining: float):
+        """COG and body pose for swinging ``leg`` from stance ``feet``: the body follows the
+        feet (their mean offset from the nominal stance, A/8 ahead), projected into the other
+        three feet's triangle shrunk by the stability margin, crouching if needed for reach.
+        Returns ``(cog, T_map_base, height)`` or ``(None, reason, None)``."""
+        cfg = self.cfg
+        others = [k for k in range(4) if k != leg]
+        inset = _inset_triangle(feet[others, :2], cfg.stability_margin_m)
+        if inset is None:
+            return None, (f'the support triangle for swinging {LEG_NAMES[leg]} cannot hold the '
+                          f'COG with a {cfg.stability_margin_m} m margin'), None
+        u, v = self._uv(feet)
+        bu = float(np.mean(u - self.nom_u)) + A / 8.0
+        bu = min(bu, remaining)
+        nominal = self.origin + bu * self.hdir + float(np.mean(v - self.nom_v)) * self.ldir
+        # Preferred COG: the nominal body projected into the shrunk triangle; if a leg cannot
+        # reach from there, slide it towards the triangle's centre or back along the path.
+        first = _project_to_triangle(nominal, inset)
+        centre = inset.mean(axis=0)
+        options = [first] + [first + t * (centre - first) for t in (0.35, 0.7, 1.0)] + [
+            _project_to_triangle(nominal - 0.25 * A * self.hdir, inset)]
+        for cog in options:
+            Tb = self._body_in_reach(cog, feet, yaw)
+            if Tb is not None:
+                break
+        if Tb is None:
+            return None, (f'shifting the COG into the support triangle for swinging '
+                          f'{LEG_NAMES[leg]} puts a stance leg out of reach'), None
+        return cog, Tb, float(self.robot.standing_height_m * self._last_crouch)
+
     def _plan_walk(self, feet, yaw, A, remaining, first_leg) -> FootstepPlan:
-        cfg, robot = self.cfg, self.robot
+        """Beam search over the crawl. A partial plan is only kept if the next swing (after the
+        horizon too) still has a stable, reachable body pose: no dead ends handed to the
+        controller."""
+        cfg = self.cfg
         start = CRAWL_ORDER.index(first_leg)
-        beam = [_State(feet.copy(), 0.0, [], feet.copy())]
+        legs = [CRAWL_ORDER[(start + s) % 4] for s in range(cfg.horizon_steps + 1)]
+        pose0 = self._swing_pose(feet, legs[0], yaw, A, remaining)
+        if pose0[0] is None:
+            return failed(STATUS_NO_FOOTHOLD, 'the goal cannot be reached from here, no '
+                          f'feasible first step: {pose0[1]}')
+        root = _State(feet.copy(), 0.0, [], feet.copy())
+        root.swing = pose0
+        beam = [root]
         wL0 = 0.0
         last_fail = ''
         for s in range(cfg.horizon_steps):
-            leg = CRAWL_ORDER[(start + s) % 4]
+            leg, next_leg = legs[s], legs[s + 1]
             phase = s % 4
             if s > 0 and phase == 0:
                 wL0 = min(wL0 + A, remaining)
-            # The body advances A per period, A/4 per swing; it is mid-way during each swing.
-            body_nom_u = min(wL0 + A * (phase + 0.5) / 4.0, remaining)
-            new_beam: List[_State] = []
-            for st in beam:
+            expansions = []
+            for bi, st in enumerate(beam):
                 if s > 0 and phase == 0:
                     st.period_feet = st.feet.copy()
-                pf = st.period_feet
-                others = [k for k in range(4) if k != leg]
-                tri = st.feet[others, :2]
-                inset = _inset_triangle(tri, cfg.stability_margin_m)
-                if inset is None:
-                    last_fail = (f'support triangle of step {s} (leg {LEG_NAMES[leg]} swinging) '
-                                 f'cannot hold the COG with a {cfg.stability_margin_m} m margin')
-                    continue
-                nominal = self.origin + body_nom_u * self.hdir
-                cog = _project_to_triangle(nominal, inset)
-                Tb = body_pose(cog, st.feet, yaw, robot)
-                if not np.all(reachable(robot, Tb, st.feet, np.arange(4), cfg.reach_fraction)):
-                    last_fail = (f'step {s} (leg {LEG_NAMES[leg]}): shifting the COG into the '
-                                 'support triangle puts a stance leg out of reach')
-                    continue
-                cands, why = self._candidates(st, leg, pf, wL0, A, Tb)
+                cands = st.cands
                 if cands is None:
-                    last_fail = f'step {s}: leg {LEG_NAMES[leg]} has {why}'
-                    continue
+                    cands, why = self._candidates(st, leg, st.period_feet, wL0, A, st.swing[1])
+                    if cands is None:
+                        last_fail = f'leg {LEG_NAMES[leg]} has {why}'
+                        continue
                 for p, c, J, pi in zip(*cands):
-                    nf = st.feet.copy()
-                    nf[leg] = p
-                    new_beam.append(_State(
-                        nf, st.total + float(J),
-                        st.steps + [Footstep(leg, p.copy(), float(c), s, int(pi), cog.copy())],
-                        pf))
+                    expansions.append((st.total + float(J), bi, p, float(c), int(pi)))
+            expansions.sort(key=lambda e: e[0])
+            new_beam: List[_State] = []
+            n_phase = (s + 1) % 4
+            n_wL0 = min(wL0 + A, remaining) if n_phase == 0 else wL0
+            for total, bi, p, c, pi in expansions:
+                if len(new_beam) >= cfg.beam_width:
+                    break
+                st = beam[bi]
+                nf = st.feet.copy()
+                nf[leg] = p
+                # Look one swing ahead: the next leg needs a stable, reachable body pose and at
+                # least one foothold from it, or this partial plan is a dead end.
+                nxt = self._swing_pose(nf, next_leg, yaw, A, remaining)
+                if nxt[0] is None:
+                    last_fail = f'after {LEG_NAMES[leg]} steps, {nxt[1]}'
+                    continue
+                cog, _, height = st.swing
+                ns = _State(nf, total, st.steps + [Footstep(leg, p.copy(), c, s, pi,
+                                                            cog.copy(), height)],
+                            nf.copy() if n_phase == 0 else st.period_feet)
+                ns.swing = nxt
+                ns.cands, why = self._candidates(ns, next_leg, ns.period_feet, n_wL0, A, nxt[1])
+                if ns.cands is None:
+                    last_fail = f'after {LEG_NAMES[leg]} steps, leg {LEG_NAMES[next_leg]} has {why}'
+                    continue
+                new_beam.append(ns)
             if not new_beam:
                 if s == 0:
-                    return failed(STATUS_NO_FOOTHOLD, f'no feasible first step: {last_fail}')
+                    return failed(STATUS_NO_FOOTHOLD, 'the goal cannot be reached from here, no '
+                                  f'feasible first step: {last_fail}')
                 best = beam[0]
                 return self._finish(best.steps, best.feet, yaw, GAIT_WALK, A,
                                     f'{s} step(s) planned; horizon cut: {last_fail}')
-            new_beam.sort(key=lambda st: st.total)
-            beam = new_beam[:cfg.beam_width]
+            beam = new_beam
         best = beam[0]
         return self._finish(best.steps, best.feet, yaw, GAIT_WALK, A)
 

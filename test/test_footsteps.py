@@ -57,7 +57,9 @@ def _check_plan_feasible(plan, cfg, robot=ROBOT):
         others = [k for k in range(4) if k != s.leg]
         margin = fs.point_in_triangle_margin(s.body_xy, feet[others, :2])
         assert margin >= cfg.stability_margin_m - 1e-9, (s.step_index, margin)
-        T = fs.body_pose(s.body_xy, feet, plan.yaw, robot)
+        assert 0.8 * robot.standing_height_m - 1e-9 <= s.body_height_m \
+            <= robot.standing_height_m + 1e-9
+        T = fs.body_pose(s.body_xy, feet, plan.yaw, robot, height_m=s.body_height_m)
         both = np.vstack([feet, s.position])
         legs = np.r_[np.arange(4), s.leg]
         assert np.all(fs.reachable(robot, T, both, legs, cfg.reach_fraction)), s.step_index
@@ -254,8 +256,10 @@ def test_bad_inputs_give_an_explanatory_empty_plan():
     g = _flat()
     assert planner.set_map(g) is None
     cases.append((planner.plan(_pose(5.0, 0.0)), fs.STATUS_ROBOT_OUTSIDE_MAP))
-    cases.append((planner.plan(_pose(), np.array([3.0, 0.0])), fs.STATUS_BAD_INPUT))
-    assert 'outside the map' in cases[-1][0].status_text
+    far = planner.plan(_pose(), np.array([3.0, 0.3]))    # beyond the local map: head there
+    assert far.ok and far.yaw == pytest.approx(np.arctan2(0.3, 3.0))   # < max_turn_rad
+    behind = planner.plan(_pose(), np.array([-0.5, 0.0]))            # turns at most 0.1 rad
+    assert behind.ok and abs(behind.yaw) == pytest.approx(cfg.max_turn_rad)
     cases.append((planner.plan(_pose(), np.array([np.nan, 0.0])), fs.STATUS_BAD_INPUT))
     bad_T = _pose()
     bad_T[0, 3] = np.nan
@@ -269,8 +273,8 @@ def test_bad_inputs_give_an_explanatory_empty_plan():
         h[i, j] = 0.0
     island = _grid(h)
     assert planner.set_map(island) is None
-    cases.append((planner.plan(_pose()), fs.STATUS_NO_FOOTHOLD))
-    assert 'LH' in cases[-1][0].status_text
+    cases.append((planner.plan(_pose(), np.array([0.6, 0.0])), fs.STATUS_NO_FOOTHOLD))
+    assert 'LH' in cases[-1][0].status_text and 'cannot be reached' in cases[-1][0].status_text
     for plan, status in cases:
         assert plan.status == status, plan.status_text
         assert plan.footsteps == [] and plan.status_text

@@ -147,16 +147,14 @@ def test_bad_inputs_give_explanatory_empty_plans(ros_context, executor):
     assert plan.status == FootstepPlan.STATUS_ROBOT_OUTSIDE_MAP
     h.pose(_pose_T())
     goal = PoseStamped()
-    goal.pose.position.x = 5.0                              # goal off the map: unreachable
+    goal.pose.position.x = 5.0                              # beyond the local map
     h.pub_goal.publish(goal)
     assert spin_until(executor, lambda: h.node.goal_xy is not None, 5.0)
-    assert spin_until(executor, lambda: 'cannot be reached' in h.plans[-1].status_text, 5.0)
-    assert h.plans[-1].status == FootstepPlan.STATUS_BAD_INPUT
     island = np.full((150, 150), np.nan)
     island[0:10, 0:10] = 0.0                 # known only in a corner no leg reaches: stuck
-    h.node.goal_xy = None
     plan = h.send_map(grid_to_msg(_grid(island)))
-    assert plan.status == FootstepPlan.STATUS_NO_FOOTHOLD and plan.status_text
+    assert plan.status == FootstepPlan.STATUS_NO_FOOTHOLD
+    assert 'cannot be reached' in plan.status_text
     bad_pose = PoseStamped()
     bad_pose.pose.orientation.w = 0.0                       # zero quaternion: refused, counted
     h.pub_pose.publish(bad_pose)
