@@ -179,15 +179,20 @@ def observed_mask(grid: GridMap) -> np.ndarray:
     return np.isfinite(elev)
 
 
-def map_rmse(grid: GridMap, terrain: GridMap, mask: np.ndarray) -> Tuple[float, int]:
-    """Height RMSE [m] of ``grid``'s elevation against the true terrain on ``mask`` cells."""
+def map_errors(grid: GridMap, terrain: GridMap, mask: np.ndarray) -> np.ndarray:
+    """Height errors [m] (map - truth) of ``grid``'s elevation on ``mask`` cells that lie on
+    the true terrain."""
     truth = sample_cell_mean(terrain, grid)
     ok = mask & np.isfinite(truth) & np.isfinite(grid['elevation'])
-    n = int(ok.sum())
-    if n == 0:
+    return (grid['elevation'][ok] - truth[ok]).astype(np.float64)
+
+
+def map_rmse(grid: GridMap, terrain: GridMap, mask: np.ndarray) -> Tuple[float, int]:
+    """Height RMSE [m] of ``grid``'s elevation against the true terrain on ``mask`` cells."""
+    err = map_errors(grid, terrain, mask)
+    if err.size == 0:
         return float('nan'), 0
-    err = grid['elevation'][ok] - truth[ok]
-    return float(np.sqrt(np.mean(err.astype(np.float64) ** 2))), n
+    return float(np.sqrt(np.mean(err ** 2))), int(err.size)
 
 
 def true_cost_grid(terrain: GridMap, cost_cfg: CostConfig) -> GridMap:
@@ -329,9 +334,15 @@ def compute_summary(d: RunData, model=None, cost_cfg: CostConfig = CostConfig())
     s['icp_corrections'] = int(len(d.corr_t))
     # --- map
     if d.map_fine is not None and d.true_terrain is not None:
-        rmse, n = map_rmse(d.map_fine, d.true_terrain, observed_mask(d.map_fine))
-        s['map_rmse_observed_m'] = _finite(rmse)
+        err = map_errors(d.map_fine, d.true_terrain, observed_mask(d.map_fine))
+        n = int(err.size)
+        s['map_rmse_observed_m'] = _finite(float(np.sqrt(np.mean(err ** 2)))) if n else None
         s['map_observed_cells'] = n
+        if n:
+            # Robust figures beside the RMSE: a few wild cells dominate an RMSE.
+            s['map_abs_err_median_m'] = round(float(np.median(np.abs(err))), 5)
+            s['map_cells_within_1cm'] = round(float(np.mean(np.abs(err) <= 0.01)), 4)
+            s['map_cells_off_by_5cm'] = round(float(np.mean(np.abs(err) > 0.05)), 4)
         if n == 0:
             missing['map_rmse_observed_m'] = '/map/fine has no observed cell on the course'
     else:
@@ -372,6 +383,7 @@ def compute_summary(d: RunData, model=None, cost_cfg: CostConfig = CostConfig())
         lat = np.asarray(d.latencies_ms)
         s['capture_to_plan_ms_median'] = round(float(np.median(lat)), 1)
         s['capture_to_plan_ms_p95'] = round(float(np.percentile(lat, 95)), 1)
+        s['capture_to_plan_ms_all'] = [round(float(v), 1) for v in lat]
     else:
         s['capture_to_plan_ms_median'] = None
         missing['capture_to_plan_ms_median'] = 'no plan matched a captured image stamp'
@@ -416,11 +428,9 @@ def _course_lines(ax, c: CourseInfo) -> None:
 
 def _crop(ax, d: RunData) -> None:
     """View: the course region the robot walked plus the map's extent, y within +-0.5 m."""
-    xs = [d.course.start_x_m - 0.3, d.course.finish_x_m + 0.3]
-    for g in (d.map_fine, d.map_filled):
-        if g is not None:
-            e = _extent(g)
-            xs += [e[0], e[1]]
+    xs = [d.course.start_x_m - 0.35, d.course.finish_x_m + 0.3]
+    if len(d.gt_t):
+        xs += [float(d.gt_T[:, 0, 3].min()) - 0.35, float(d.gt_T[:, 0, 3].max()) + 0.6]
     ax.set_xlim(min(xs), max(xs))
     ax.set_ylim(-0.5, 0.5)
 
@@ -473,8 +483,12 @@ def fig_footsteps(d: RunData, path: Path, executed: np.ndarray, cost_cfg: CostCo
         g = true_cost_grid(d.true_terrain, cost_cfg) if d.true_terrain is not None else None
         title = ('TRUE cost (no /map/filled cost layer: ' + why.get('filled', 'missing') + ')'
                  if g is not None else 'cost')
-    vmax = float(np.nanpercentile(g['cost'], 99)) if g is not None and \
-        np.isfinite(g['cost']).any() else 1.0
+    # One colour scale for perceived and true cost: the true rocks' 99th percentile (a few
+    # wild cells of a perceived map would wash everything else out).
+    ref = (true_cost_grid(d.true_terrain, cost_cfg)['cost'] if d.true_terrain is not None
+           else (g['cost'] if g is not None else np.ones(1)))
+    vmax = float(np.nanpercentile(ref, 99)) if np.isfinite(ref).any() else 1.0
+    vmax = vmax if vmax > 0 else 1.0
     im = _show(ax, g, 'cost', title, 0.0, vmax, cmap='viridis', why=why.get('filled', ''))
     if im is not None:
         fig.colorbar(im, ax=ax, label='foothold cost [-]', shrink=0.8)
@@ -486,8 +500,8 @@ def fig_footsteps(d: RunData, path: Path, executed: np.ndarray, cost_cfg: CostCo
     for leg in range(4):
         p = planned[planned[:, 0] == leg]
         if len(p):
-            ax.scatter(p[:, 1], p[:, 2], s=8, marker='x', color=LEG_COLOURS[leg], alpha=0.5,
-                       lw=0.8, label=f'planned {LEG_NAMES[leg]}')
+            ax.scatter(p[:, 1], p[:, 2], s=30, marker='x', color=LEG_COLOURS[leg], alpha=0.9,
+                       lw=1.3, label=f'planned {LEG_NAMES[leg]}')
         e = executed[executed[:, 0] == leg] if len(executed) else executed
         if len(e):
             ax.scatter(e[:, 1], e[:, 2], s=40, marker='o', facecolors='none',
@@ -516,8 +530,11 @@ def fig_path(d: RunData, path: Path, why: Dict[str, str]) -> List[str]:
                                   gridspec_kw={'height_ratios': [2, 1]})
     bg = next((g for g in (d.map_filled, d.map_fine, d.true_terrain) if g is not None), None)
     if bg is not None:
+        top = (float(np.nanmax(d.true_terrain['elevation'])) if d.true_terrain is not None
+               else 0.06)
         ax.imshow(bg['elevation'].T, origin='lower', extent=_extent(bg), cmap='gray',
-                  interpolation='nearest', aspect='equal', alpha=0.8)
+                  interpolation='nearest', aspect='equal', alpha=0.8, vmin=0.0,
+                  vmax=max(top, 0.01))
     if len(d.gt_t):
         ax.plot(d.gt_T[:, 0, 3], d.gt_T[:, 1, 3], 'g-', lw=1.5, label='true path')
     else:
@@ -645,7 +662,10 @@ def format_summary(s: dict) -> str:
         f'(RTF {s["real_time_factor"]})',
         f'  localisation   final error {f("final_localisation_error_m", "{:.4f}", " m")}; '
         f'{s.get("icp_corrections", 0)} ICP corrections',
-        f'  map RMSE       {f("map_rmse_observed_m", "{:.4f}", " m")} on observed cells',
+        f'  map RMSE       {f("map_rmse_observed_m", "{:.4f}", " m")} on '
+        f'{s.get("map_observed_cells", 0)} observed cells (median |error| '
+        f'{f("map_abs_err_median_m", "{:.4f}", " m")}, '
+        f'{100 * (s.get("map_cells_off_by_5cm") or 0):.1f}% off by > 5 cm)',
         f'  footholds      mean true cost {f("mean_true_foothold_cost", "{:.4f}")} '
         f'({s.get("foothold_cost_source", "-")}); plans {s.get("plans_ok")}/'
         f'{s.get("plans_received")} with steps',
@@ -653,7 +673,9 @@ def format_summary(s: dict) -> str:
         f'{f("capture_to_plan_ms_median", "{:.0f}", " ms")}',
     ]
     bad = {k: v for k, v in s.get('nodes', {}).items() if v.get('state') != 'ran'}
-    if bad:
+    if not s.get('nodes'):
+        lines.append('  nodes          no node information')
+    elif bad:
         lines.append('  nodes NOT ok:  ' + '; '.join(
             f'{k}: {v.get("state")}{" - " + v["reason"] if v.get("reason") else ""}'
             for k, v in bad.items()))

@@ -88,6 +88,10 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument('--replay-rate', type=float, default=1.0,
                    help='bag playback rate with --replay (default 1)')
     p.add_argument('--no-bag', action='store_true', help='do not record a bag')
+    p.add_argument('--blind', action='store_true',
+                   help='benchmark variant: the planner and controller get a flat map '
+                        '(/map/blind, published here on every /map/fine) instead of '
+                        '/map/filled')
     p.add_argument('--no-goal', action='store_true',
                    help='do not publish /goal_pose at the finish line (planner goes straight)')
     p.add_argument('--progress-period', type=float, default=5.0,
@@ -299,7 +303,7 @@ class Monitor:
     """Subscribes the graph's outputs and ground truth (wall clock, no sim time)."""
 
     def __init__(self, model, finish_x: float, publish_goal: bool,
-                 domain_id: Optional[int] = None) -> None:
+                 domain_id: Optional[int] = None, blind: bool = False) -> None:
         import rclpy
         from rclpy.context import Context
         from rclpy.executors import SingleThreadedExecutor
@@ -307,6 +311,7 @@ class Monitor:
         self.model = model
         self.finish_x = finish_x
         self.publish_goal = publish_goal
+        self.blind = blind
         self.ctx = Context()
         if domain_id is None:
             domain_id = int(os.environ.get('ROS_DOMAIN_ID', '0') or 0)
@@ -354,8 +359,9 @@ class Monitor:
         sub(TerrainGrid, '/ground_truth/terrain', lambda m: self._keep('terrain_msg', m,
                                                                        '/ground_truth/terrain'),
             LATCHED_QOS)
-        sub(TerrainGrid, '/map/fine', lambda m: self._keep('fine_msg', m, '/map/fine'),
-            LATCHED_QOS)
+        sub(TerrainGrid, '/map/fine', self._on_fine, LATCHED_QOS)
+        self.blind_pub = (n.create_publisher(TerrainGrid, '/map/blind', LATCHED_QOS)
+                          if self.blind else None)
         sub(TerrainGrid, '/map/filled', lambda m: self._keep('filled_msg', m, '/map/filled'),
             LATCHED_QOS)
         sub(PoseStamped, '/icp/pose', self._on_icp, RELIABLE_QOS)
@@ -404,6 +410,19 @@ class Monitor:
     def _keep(self, attr: str, msg, topic: str) -> None:
         setattr(self, attr, msg)
         self._count(topic)
+
+    def _on_fine(self, msg) -> None:
+        self._keep('fine_msg', msg, '/map/fine')
+        if self.blind_pub is not None:
+            # Blind variant: the same grid and stamp, flat and fully "observed".
+            from terrain_perception.grid import GridMap
+            from terrain_ros.conversions import grid_to_msg, msg_to_grid
+            g = msg_to_grid(msg)
+            zeros = np.zeros(g.shape, np.float32)
+            flat = GridMap(g.resolution_m, g.origin_xy, g.shape,
+                           {'elevation': zeros, 'observed': zeros + 1.0, 'filled': zeros,
+                            'cost': zeros}, frame_id=g.frame_id, stamp_s=g.stamp_s)
+            self.blind_pub.publish(grid_to_msg(flat))
 
     def _on_clock(self, msg) -> None:
         from terrain_ros.conversions import stamp_to_sec
@@ -591,6 +610,8 @@ def run(args) -> int:
     declared = (yaml.safe_load(launch_run.read_text()) or {}).get('arguments') or {}
     cli = {'robot': args.robot, 'course': args.course, 'seed': str(args.seed),
            'image_scale': str(args.image_scale), 'camera_rate_hz': str(args.camera_rate)}
+    if args.blind:
+        cli['planner_map'] = '/map/blind'
     if course.name in ('rocks-12cm', 'stones-15cm'):
         from terrain_perception.terrain import COURSE_CLASSES
         cli['library_height_m'] = str(COURSE_CLASSES[course.name].max_height_m)
@@ -617,7 +638,8 @@ def run(args) -> int:
 
     stop = _Stop()
     old = {s: signal.signal(s, stop.on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
-    monitor = Monitor(model, course.finish_x_m, publish_goal=not args.no_goal)
+    monitor = Monitor(model, course.finish_x_m, publish_goal=not args.no_goal,
+                      blind=args.blind)
     recorder = None
     if not args.no_bag:
         recorder = start_recorder(run_dir / 'bag', log_dir, env)

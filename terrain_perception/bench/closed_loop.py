@@ -1,0 +1,140 @@
+"""Closed loop: success rate, falls, speed and capture-to-plan latency of the whole graph.
+
+For each course class (``rocks-6cm`` and ``rocks-12cm`` with the LittleDog-like robot,
+``stones-15cm`` with the FROG-I-like robot), N seeds and three variants, one ``terrain-demo`` run
+(the full node graph as separate processes, headless) per trial:
+
+* ``full``: the system as shipped;
+* ``nofill``: terrain fill switched off (``fill.method: none``): occluded cells stay unknown and
+  the cost is computed ignoring missing cells (paper 000: the system "will invariably fail"
+  without terrain modelling);
+* ``blind``: the planner and the controller see a flat map (``/map/blind``, all cells observed
+  at height 0, published by the demo on every new ``/map/fine``): flat-ground footsteps with
+  the same localisation.
+
+A trial succeeds when the robot crossed without a fall. Latency is the wall time from the
+simulator publishing a capture to the plan made on the map of that capture (``FootstepPlan``
+stamps are the map's stamp), pooled over trials. The suite only starts processes and reads each
+run's ``summary.json``; it imports nothing from ROS.
+
+JSON: ``success`` (course -> variant -> rate), ``falls`` (course -> variant -> total),
+``speed_mps`` (course -> variant -> mean over trials that moved), ``latency_ms_median``,
+``latency_ms_p95`` (full variant), ``trials`` (every trial's outcome and run directory).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+COURSES = {'rocks-6cm': 'littledog', 'rocks-12cm': 'littledog', 'stones-15cm': 'frog'}
+VARIANTS = {
+    'full': [],
+    'nofill': ['--arg', 'fill_method:=none'],
+    'blind': ['--blind'],
+}
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument('--courses', nargs='+', default=list(COURSES), choices=list(COURSES),
+                   help='course classes (default: all three)')
+    p.add_argument('--variants', nargs='+', default=list(VARIANTS), choices=list(VARIANTS),
+                   help='system variants (default: all three)')
+    p.add_argument('--seeds', type=int, default=10, help='seeds per course (default 10)')
+    p.add_argument('--first-seed', type=int, default=100,
+                   help='first course seed (default 100: not the demo\'s seed 0)')
+    p.add_argument('--max-sim-time', type=float, default=150.0,
+                   help='simulated-time limit per trial [s] (default 150)')
+    p.add_argument('--timeout', type=float, default=900.0,
+                   help='wall-time limit per trial [s] (default 900)')
+    p.add_argument('--image-scale', type=float, default=1.0,
+                   help='camera resolution relative to the profile (default 1)')
+    p.add_argument('--out', type=Path, default=None,
+                   help='folder for the trials\' run directories (default runs/bench-<date>)')
+
+
+def _trial(args, course: str, robot: str, variant: str, seed: int, out: Path) -> dict:
+    run_dir = out / course / variant / f'seed{seed}'
+    cmd = [str(Path(sys.executable).parent / 'terrain-demo'), '--robot', robot,
+           '--course', course, '--seed', str(seed), '--run-dir', str(run_dir), '--no-bag',
+           '--quiet', '--max-sim-time', str(args.max_sim_time), '--timeout', str(args.timeout),
+           '--image-scale', str(args.image_scale), *VARIANTS[variant]]
+    t0 = time.monotonic()
+    proc = subprocess.run(cmd, capture_output=True, text=True, env=dict(os.environ),
+                          timeout=args.timeout + 300)
+    wall = time.monotonic() - t0
+    summary_file = run_dir / 'summary.json'
+    row = {'course': course, 'robot': robot, 'variant': variant, 'seed': seed,
+           'run_dir': str(run_dir), 'wall_s': round(wall, 1), 'exit_code': proc.returncode}
+    if not summary_file.is_file():
+        tail = (proc.stdout + proc.stderr).strip().splitlines()[-3:]
+        row.update(ok=False, error='no summary.json: ' + ' | '.join(tail))
+        return row
+    s = json.loads(summary_file.read_text())
+    row.update(ok=True, crossed=bool(s.get('crossed')), falls=s.get('falls'),
+               distance_m=s.get('distance_m'), sim_time_s=s.get('sim_time_s'),
+               mean_speed_mps=s.get('mean_speed_mps'), end_reason=s.get('end_reason'),
+               complete_graph=s.get('complete_graph'),
+               latencies_ms=s.get('capture_to_plan_ms_all') or [],
+               success=bool(s.get('crossed')) and not s.get('falls'))
+    return row
+
+
+def run(args) -> dict:
+    if args.quick:
+        args.courses, args.variants, args.seeds = ['rocks-6cm'], ['full'], 1
+        args.max_sim_time, args.image_scale = min(args.max_sim_time, 10.0), 0.5
+    out = args.out or Path('runs') / time.strftime('bench-%Y%m%d-%H%M%S')
+    out.mkdir(parents=True, exist_ok=True)
+    trials = []
+    for course in args.courses:
+        for variant in args.variants:
+            for seed in range(args.first_seed, args.first_seed + args.seeds):
+                row = _trial(args, course, COURSES[course], variant, seed, out)
+                trials.append(row)
+                print(f'  {course:12s} {variant:7s} seed {seed:4d}: '
+                      + (f'{"crossed" if row.get("crossed") else "NOT crossed":11s} '
+                         f'falls {row.get("falls")} dist {row.get("distance_m")} m '
+                         f'({row.get("end_reason")}; {row["wall_s"]:.0f} s wall'
+                         f'{"" if row.get("complete_graph") else "; INCOMPLETE GRAPH"})'
+                         if row['ok'] else f'FAILED TO RUN: {row["error"]}'), flush=True)
+    success, falls, speed = {}, {}, {}
+    for course in args.courses:
+        for variant in args.variants:
+            rows = [r for r in trials if r['course'] == course and r['variant'] == variant]
+            ran = [r for r in rows if r['ok']]
+            success.setdefault(course, {})[variant] = (
+                round(sum(r['success'] for r in ran) / len(rows), 3) if rows else None)
+            falls.setdefault(course, {})[variant] = int(sum(r['falls'] or 0 for r in ran))
+            sp = [r['mean_speed_mps'] for r in ran if r.get('mean_speed_mps')]
+            speed.setdefault(course, {})[variant] = round(float(np.mean(sp)), 4) if sp else None
+    lat = np.asarray([v for r in trials if r['variant'] == 'full' and r['ok']
+                      for v in r['latencies_ms']], dtype=float)
+    print()
+    print(f'{"course":12s} {"variant":8s} {"success":>8s} {"falls":>6s} {"speed m/s":>10s} '
+          f'{"trials":>7s}')
+    for course in args.courses:
+        for variant in args.variants:
+            n = sum(1 for r in trials if r['course'] == course and r['variant'] == variant)
+            sr = success[course][variant]
+            print(f'{course:12s} {variant:8s} {"-" if sr is None else f"{sr:.0%}":>8s} '
+                  f'{falls[course][variant]:6d} '
+                  f'{"-" if speed[course][variant] is None else speed[course][variant]:>10} '
+                  f'{n:7d}')
+    med = round(float(np.median(lat)), 1) if lat.size else None
+    p95 = round(float(np.percentile(lat, 95)), 1) if lat.size else None
+    print(f'capture-to-plan latency (full): median {med} ms, p95 {p95} ms over {lat.size} plans')
+    for r in trials:
+        r.pop('latencies_ms', None)
+    return {'success': success, 'falls': falls, 'speed_mps': speed,
+            'latency_ms_median': med, 'latency_ms_p95': p95, 'latency_samples': int(lat.size),
+            'trials': trials, 'settings': {'seeds': args.seeds, 'first_seed': args.first_seed,
+                                           'max_sim_time_s': args.max_sim_time,
+                                           'image_scale': args.image_scale}}
