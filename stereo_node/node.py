@@ -28,7 +28,6 @@ from dataclasses import dataclass
 from typing import Dict, Optional, Tuple
 
 import numpy as np
-from diagnostic_msgs.msg import DiagnosticArray  # noqa: F401  (type published by Counters)
 from rclpy.node import Node
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 from std_msgs.msg import Header

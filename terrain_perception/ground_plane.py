@@ -3,12 +3,14 @@
 Paper 002 (Shao, Yang, Wang), section II-C: N points of the cloud are the sample set; m times,
 three of them are drawn at random, the plane through them is computed and the sample points
 closer than a threshold are counted as inliers; the largest inlier set is refitted by least
-squares. Ours (``below_penalty`` > 0; 0 gives the paper's plain RANSAC): a hypothesis loses score for
+squares. The refit is the orthogonal (total) least-squares plane, i.e. the smallest singular
+vector of the centred inliers, the least-squares plane that does not favour an axis.
+
+Ours (``below_penalty`` > 0; 0 gives the paper's plain RANSAC): a hypothesis loses score for
 every point clearly below it, since nothing is seen through the ground; this keeps RANSAC off
-the tops of rock fields that hide most of the floor. The defaults (N 4000, m 400, 5 mm, penalty
-2) were chosen on simulated views (seeds 7-8, not the benchmark's); with real stereo noise a
-larger threshold may be needed. The refit is the orthogonal (total) least-squares plane, i.e. the smallest singular
-vector of the centred inliers, which is the least-squares plane that does not favour an axis.
+the tops of rock fields that hide most of the floor. The defaults (N 4000, m 400, 5 mm,
+penalty 2) were chosen on simulated views (seeds 7-8, not the benchmark's); with real stereo
+noise a larger threshold may be needed.
 
 Frame: the left camera's optical frame (z forward, x right, y down). The plane is
 ``n . p + d = 0`` with the unit normal ``n`` pointing from the ground towards the camera, so

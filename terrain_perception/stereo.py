@@ -65,7 +65,7 @@ from typing import Optional, Tuple
 import cv2
 import numpy as np
 
-from terrain_perception.camera import StereoCamera
+from terrain_perception.camera import PinholeCamera, StereoCamera
 from terrain_perception.config import param
 
 NORMALISATIONS = ('none', 'meanstd', 'minmax', 'equalize')
@@ -95,14 +95,14 @@ class StereoConfig:
     prefilter_cap: int = param(31, 'StereoBM pre-filter clip value [grey levels]', 1, 63)
     texture_threshold: int = param(0, 'StereoBM: minimum window texture, 0 = off', 0, 10000)
     uniqueness_ratio: int = param(0, 'StereoBM: best-vs-second margin [%], 0 = off', 0, 100)
-    speckle_window_px: int = param(0, 'StereoBM speckle filter region size [px], 0 = off',
-                                   0, 10000)
+    speckle_window_px: int = param(0, 'StereoBM speckle filter: blobs of fewer pixels are '
+                                   'dropped [px], 0 = off', 0, 10000)
     speckle_range_px: int = param(2, 'StereoBM speckle filter disparity range [px]', 0, 64)
     lr_check_px: int = param(1, 'StereoBM left-right consistency tolerance [px], -1 = off',
                              -1, 64)
     outlier_removal: bool = param(True, 'row-histogram outlier removal (Shao II-B-1)')
     outlier_min_count: int = param(
-        4, 'a disparity value (rounded to 1 px) occurring fewer times than this in its row '
+        8, 'a disparity value (rounded to 1 px) occurring fewer times than this in its row '
         'marks its pixels as mismatches [px]', 1, 10000)
     area_filling: bool = param(True, 'eight-relation row area filling (Shao II-B-2)')
     fill_passes: int = param(1, 'repetitions of the area-filling step (paper: 1)', 1, 64)
@@ -183,8 +183,8 @@ def check_pair(left: np.ndarray, right: np.ndarray, config: StereoConfig) -> Non
                                             f'{config.num_disparities} disparities and a '
                                             f'{config.block_size_px} px window')
     for side, img in (('left', left), ('right', right)):
-        # A 4x subsample is plenty to decide whether an image is blank or clipped.
-        sub = img[::4, ::4]
+        # An 8x subsample is plenty to decide whether an image is blank or clipped.
+        sub = img[::8, ::8]
         n = sub.size
         black = np.count_nonzero(sub == 0) / n
         white = np.count_nonzero(sub == 255) / n
@@ -329,10 +329,11 @@ def row_outliers_fixed(disp16: np.ndarray, invalid: np.ndarray, min_count: int,
                        min_disparity: int, num_disparities: int) -> np.ndarray:
     """:func:`remove_row_outliers` on StereoBM's fixed-point output (same rounding, same
     result; the pipeline's fast path). Returns the boolean mask of the rare pixels."""
-    # floor(d + 0.5) = (disp16 + 8) >> 4 in integers; the blanks go to bin 0.
-    key = np.right_shift(disp16 + np.int16(8), 4)
-    key -= np.int16(min_disparity - 1)
-    key[invalid] = 0
+    # bin = floor(d + 0.5) - lo + 1 = (disp16 + 8 + 16 (1 - lo)) >> 4 in integers; StereoBM's
+    # 'no match' value 16 (lo - 1) lands in bin 0, the other blanks are put there explicitly.
+    key = disp16 + np.int16(8 + 16 * (1 - min_disparity))
+    key >>= 4
+    key *= np.logical_not(invalid).view(np.uint8)
     return _rare_in_row(key, num_disparities + 1, min_count)
 
 
@@ -341,10 +342,11 @@ def _rare_in_row(bins: np.ndarray, n_values: int, min_count: int) -> np.ndarray:
     pixels of the same row: one bincount over (row, bin) pairs."""
     h = bins.shape[0]
     nb = n_values + 1
-    key = np.add(bins, (np.arange(h, dtype=np.int32) * nb)[:, None], dtype=np.int32)
+    # intp keys: bincount and take would convert narrower ones anyway.
+    key = np.add(bins, (np.arange(h, dtype=np.intp) * nb)[:, None], dtype=np.intp)
     rare = np.bincount(key.ravel(), minlength=h * nb) < min_count
     rare[::nb] = False                         # the blanks are not outliers
-    return rare[key]
+    return np.take(rare, key)
 
 
 _NEIGHBOURS = np.array([[1.0, 0.0, 1.0]], dtype=np.float32)
@@ -378,6 +380,29 @@ def fill_rows(disparity: np.ndarray, passes: int = 1) -> np.ndarray:
     return d
 
 
+def fill_first_pass_fixed(disp16: np.ndarray, invalid: np.ndarray) -> np.ndarray:
+    """One pass of :func:`fill_rows` on StereoBM's fixed-point output, returning float32
+    disparity [px] (NaN = blank): ``fill_rows(fixed_to_float(disp16, invalid))`` with fewer
+    passes over the image (the pipeline's fast path; the sums are exact in int16)."""
+    blank = invalid.view(np.uint8)
+    valid = blank ^ np.uint8(1)
+    zeroed = disp16 * valid                         # blanks -> 0 (masks as 0/1 factors:
+    total = _row_neighbour_sum(zeroed)              # far cheaper than np.where)
+    count = _row_neighbour_sum(valid)
+    num = zeroed + total * blank                    # valid: own value; blank: neighbour sum
+    den = (count * blank + valid) * np.uint8(16)    # valid: 16; blank: 16 x neighbours
+    with np.errstate(invalid='ignore', divide='ignore'):
+        return np.divide(num, den, dtype=np.float32)   # 0 / 0 = NaN: Rule 1
+
+
+def _row_neighbour_sum(a: np.ndarray) -> np.ndarray:
+    """``a[v, u - 1] + a[v, u + 1]`` with zero outside the row."""
+    out = np.zeros_like(a)
+    out[:, 1:] = a[:, :-1]
+    out[:, :-1] += a[:, 1:]
+    return out
+
+
 def disparity_to_points(disparity: np.ndarray, stereo: StereoCamera,
                         max_depth_m: float = np.inf,
                         rays: Optional[np.ndarray] = None) -> np.ndarray:
@@ -390,20 +415,27 @@ def disparity_to_points(disparity: np.ndarray, stereo: StereoCamera,
         disparity: ``(H, W)`` [px] matching ``stereo.left``'s size.
         stereo: the rectified pair.
         max_depth_m: range cut-off along z [m].
-        rays: optional cached ``stereo.left.rays()`` as float32 (saves time per frame).
+        rays: optional cached :func:`ray_planes` of ``stereo.left`` (saves time per frame).
     """
     d = np.asarray(disparity, dtype=np.float32)
     cam = stereo.left
     if d.shape != (cam.height, cam.width):
         raise ValueError(f'disparity is {d.shape}, camera is {cam.height}x{cam.width}')
     if rays is None:
-        rays = cam.rays().astype(np.float32)
+        rays = ray_planes(cam)
+    fb = np.float32(cam.fx * stereo.baseline_m)
     with np.errstate(divide='ignore', invalid='ignore'):
-        z = np.float32(cam.fx * stereo.baseline_m) / d
-        # d <= 0 gives z <= 0 or inf; NaN fails both tests.
-        z[~((z > 0) & (z <= max_depth_m))] = np.nan
-    # OpenCV's per-element product of 3-channel images is ~3x faster than numpy broadcasting.
-    return cv2.multiply(np.ascontiguousarray(rays, dtype=np.float32), cv2.merge([z, z, z]))
+        z = fb / d
+    # z <= max_depth  <=>  d >= fx B / max_depth (> 0); NaN stays NaN.
+    np.copyto(z, np.float32(np.nan), where=d < np.float32(max(fb / max_depth_m, 1e-6)))
+    # Single-channel OpenCV products and one merge: ~3x faster than numpy broadcasting.
+    return cv2.merge([cv2.multiply(rays[0], z), cv2.multiply(rays[1], z), z])
+
+
+def ray_planes(camera: PinholeCamera) -> np.ndarray:
+    """``(2, H, W)`` float32: ``(u - cx) / fx`` and ``(v - cy) / fy`` per pixel (X/Z, Y/Z)."""
+    r = camera.rays()
+    return np.ascontiguousarray(np.moveaxis(r[..., :2], -1, 0), dtype=np.float32)
 
 
 def coarse_subsample(points: np.ndarray, step: int) -> np.ndarray:
@@ -440,7 +472,7 @@ class StereoPipeline:
         self.config = config
         self.stereo = stereo
         self.matcher = StereoMatcher(config)
-        self._rays = stereo.left.rays().astype(np.float32)
+        self._rays = ray_planes(stereo.left)
 
     def prepare(self, left: np.ndarray, right: np.ndarray,
                 channel_order: str = 'rgb') -> Tuple[np.ndarray, np.ndarray]:
@@ -465,8 +497,10 @@ class StereoPipeline:
         if c.outlier_removal:
             invalid |= row_outliers_fixed(disp16, invalid, c.outlier_min_count,
                                           c.min_disparity, c.num_disparities)
-        d = fixed_to_float(disp16, invalid)
-        return fill_rows(d, c.fill_passes) if c.area_filling else d
+        if not c.area_filling:
+            return fixed_to_float(disp16, invalid)
+        d = fill_first_pass_fixed(disp16, invalid)
+        return fill_rows(d, c.fill_passes - 1) if c.fill_passes > 1 else d
 
     def process(self, left: np.ndarray, right: np.ndarray,
                 channel_order: str = 'rgb') -> StereoFrame:
