@@ -26,7 +26,7 @@ nothing here reads a clock.
 from __future__ import annotations
 
 import collections
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Deque, Dict, Optional, Tuple
 
 import numpy as np
@@ -81,7 +81,7 @@ class MapperConfig:
     robust_kernel: str = param('tukey', 'robust loss on point-to-plane residuals',
                                choices=('none', 'huber', 'tukey', 'cauchy', 'gm', 'l1'))
     kernel_scale_m: float = param(0.01, 'robust kernel scale [m]', 1e-5, 1.0)
-    degeneracy_threshold: float = param(1e-3, 'keep the prior along directions whose normalised '
+    degeneracy_threshold: float = param(5e-4, 'keep the prior along directions whose normalised '
                                         'point-to-plane information is below this (0 = off)',
                                         0.0, 1.0)
     # ---- guards
@@ -147,6 +147,8 @@ class MapperUpdate:
         correction_m, correction_deg: ICP pose minus prior (body position [m], rotation [deg]).
         n_source, n_model: ICP source points and coarse-model points.
         n_degenerate: directions (of 6) the geometry did not constrain; kept at the prior.
+        min_information: smallest eigenvalue of the normalised point-to-plane information
+            (see :func:`remove_degenerate_motion`); near 0 = a direction is unconstrained.
     """
 
     accepted: bool
@@ -163,6 +165,7 @@ class MapperUpdate:
     n_source: int = 0
     n_model: int = 0
     n_degenerate: int = 0
+    min_information: float = float('nan')
 
 
 def _check_T(T: np.ndarray, name: str) -> np.ndarray:
@@ -468,24 +471,28 @@ class FineHeightMap:
             return 0
         ij, f, z = ij[ok], f[ok], points_map[ok, 2]
         lin = ij[:, 0] * self.shape[1] + ij[:, 1]
-        size = self.shape[0] * self.shape[1]
-        # full-length bincounts (no sort), then merge only the touched cells
-        nb_all = np.bincount(lin, minlength=size).astype(np.float64)
-        cells = np.flatnonzero(nb_all)
-        inv = np.zeros(size, np.int64)
-        inv[cells] = np.arange(len(cells))
-        inv = inv[lin]
-        nb = nb_all[cells]
-        mb = np.bincount(lin, weights=z, minlength=size)[cells] / nb
-        m2b = np.bincount(inv, weights=(z - mb[inv]) ** 2, minlength=len(cells))
-        zmin = np.full(len(cells), np.inf)
-        zmax = np.full(len(cells), -np.inf)
-        np.minimum.at(zmin, inv, z)
-        np.maximum.at(zmax, inv, z)
+        # one sort, then every per-cell sum in a single reduceat
+        order = np.argsort(lin, kind='stable')
+        lin = lin[order]
+        starts = np.flatnonzero(np.r_[True, lin[1:] != lin[:-1]])
+        cells = lin[starts]
+        nb = np.diff(np.r_[starts, len(lin)]).astype(np.float64)
+        z0 = float(np.mean(z))  # reference height keeps the squared sums well conditioned
+        zs = z[order] - z0
         # offsets from the cell centre [m] for the per-cell plane
-        dx = (f[:, 0] - ij[:, 0] - 0.5) * r
-        dy = (f[:, 1] - ij[:, 1] - 0.5) * r
-        dz = z - mb[inv]  # centred heights keep the sums well conditioned
+        dx = (f[order, 0] - ij[order, 0] - 0.5) * r
+        dy = (f[order, 1] - ij[order, 1] - 0.5) * r
+        W = np.stack([zs, zs * zs, dx, dy, dx * dx, dx * dy, dy * dy, dx * zs, dy * zs], 1)
+        S = np.add.reduceat(W, starts, axis=0)
+        zmin = np.minimum.reduceat(zs, starts) + z0
+        zmax = np.maximum.reduceat(zs, starts) + z0
+        mb_rel = S[:, 0] / nb
+        mb = mb_rel + z0
+        m2b = np.maximum(S[:, 1] - nb * mb_rel * mb_rel, 0.0)
+        bx, by = S[:, 2], S[:, 3]
+        # sums of dx (z - batch mean), dy (z - batch mean)
+        bxz = S[:, 7] - mb_rel * bx
+        byz = S[:, 8] - mb_rel * by
         s = {k: a.reshape(-1) for k, a in self.s.items()}
         na, ma = s['n'][cells], s['mean'][cells]
         n = na + nb
@@ -494,18 +501,13 @@ class FineHeightMap:
         new_mean = ma + delta * nb / n
         shift_a = ma - new_mean
         shift_b = mb - new_mean
-        s['sxz'][cells] += shift_a * s['sx'][cells]
-        s['syz'][cells] += shift_a * s['sy'][cells]
-        nc = len(cells)
-        bx = np.bincount(inv, weights=dx, minlength=nc)
-        by = np.bincount(inv, weights=dy, minlength=nc)
-        s['sxz'][cells] += np.bincount(inv, weights=dx * dz, minlength=nc) + shift_b * bx
-        s['syz'][cells] += np.bincount(inv, weights=dy * dz, minlength=nc) + shift_b * by
+        s['sxz'][cells] += shift_a * s['sx'][cells] + bxz + shift_b * bx
+        s['syz'][cells] += shift_a * s['sy'][cells] + byz + shift_b * by
         s['sx'][cells] += bx
         s['sy'][cells] += by
-        s['sxx'][cells] += np.bincount(inv, weights=dx * dx, minlength=nc)
-        s['sxy'][cells] += np.bincount(inv, weights=dx * dy, minlength=nc)
-        s['syy'][cells] += np.bincount(inv, weights=dy * dy, minlength=nc)
+        s['sxx'][cells] += S[:, 4]
+        s['sxy'][cells] += S[:, 5]
+        s['syy'][cells] += S[:, 6]
         s['m2'][cells] += m2b + delta ** 2 * na * nb / n
         s['mean'][cells] = new_mean
         s['n'][cells] = n
@@ -771,10 +773,12 @@ class IcpMapper:
         # of the metric being minimised, so recompute point-to-plane over the correspondences
         corr = np.asarray(reg.correspondence_set)
         n_degenerate = 0
-        if c.degeneracy_threshold > 0 and len(corr) >= 6:
-            T_cam, _, n_degenerate = remove_degenerate_motion(
+        min_info = float('nan')
+        if len(corr) >= 6:
+            T_cam, eig, n_degenerate = remove_degenerate_motion(
                 T_cam, T_cam_prior, transform_points(T_cam, np.asarray(src.points)[corr[:, 0]]),
                 np.asarray(self._model.normals)[corr[:, 1]], c.degeneracy_threshold)
+            min_info = float(eig[0])
             if n_degenerate:
                 self.counters['degenerate_alignments'] += 1
         rmse = self._plane_rmse(src, T_cam, corr)
@@ -808,7 +812,7 @@ class IcpMapper:
         upd = MapperUpdate(not reason, False, reason, T_base, T_cam, T_prior,
                            self.T_map_odom.copy(), float(reg.fitness), rmse,
                            corr_m, float(np.degrees(corr_rad)), len(src.points), n_model,
-                           n_degenerate)
+                           n_degenerate, min_info)
         if reason:
             upd.T_map_base, upd.T_map_camera = T_prior, T_prior @ self.T_base_camera
             self._rejections_in_a_row += 1

@@ -55,7 +55,11 @@ T0 = make_T(np.eye(3), [0.0, 0.0, 0.2])
 T1 = make_T(rpy_to_R(0.01, -0.02, 0.05), [0.05, 0.01, 0.21])
 
 
-def first_mapper(scene, config=mp.MapperConfig()):
+# pixel strides scaled to the small test camera (the defaults suit the 512x480 robot camera)
+CONFIG = dataclasses.replace(mp.MapperConfig(), coarse_stride_px=4, fine_stride_px=1)
+
+
+def first_mapper(scene, config=CONFIG):
     m = mp.IcpMapper(config, T_BC)
     u = m.update(cloud_at(scene, T0), T0, 0.0)
     assert u.accepted and u.fused
@@ -110,7 +114,7 @@ def test_alignment_forced_into_a_wrong_minimum_is_rejected():
     truth = make_T(np.eye(3), [0.095, 0.0, 0.0]) @ T0
     prior = T0
     # unguarded, ICP settles on the wrong copy of the pattern, with a convincing fit
-    loose = dataclasses.replace(mp.MapperConfig(), max_correction_floor_m=10.0,
+    loose = dataclasses.replace(CONFIG, max_correction_floor_m=10.0,
                                 max_rotation_floor_deg=180.0)
     m_loose = first_mapper(scene, loose)
     u_loose = m_loose.update(cloud_at(scene, truth), prior, 1.0)
@@ -134,7 +138,7 @@ def test_alignment_forced_into_a_wrong_minimum_is_rejected():
 
 def test_misfit_alignments_rejected_by_fitness_and_by_residual(terrain):
     _, scene = terrain
-    loose = dataclasses.replace(mp.MapperConfig(), max_correction_floor_m=10.0,
+    loose = dataclasses.replace(CONFIG, max_correction_floor_m=10.0,
                                 max_rotation_floor_deg=180.0)
     # far off: ICP ends where few points find a partner
     m = first_mapper(scene, loose)
@@ -162,7 +166,7 @@ def test_fine_map_of_known_height_field_from_known_poses(terrain):
     poses = [make_T(rpy_to_R(0.0, 0.0, yaw), [x, y, 0.2])
              for x, y, yaw in [(0.0, 0.0, 0.0), (0.1, 0.05, 0.1), (0.2, -0.05, -0.1)]]
     for estimator, tol in (('plane', 0.5e-3), ('mean', 1.0e-3)):
-        m = mp.IcpMapper(dataclasses.replace(mp.MapperConfig(), fine_estimator=estimator),
+        m = mp.IcpMapper(dataclasses.replace(CONFIG, fine_estimator=estimator),
                          T_BC)
         for k, T in enumerate(poses):
             fine, src = m.prepare(cloud_at(scene, T))
@@ -210,7 +214,7 @@ def test_memory_stays_bounded_over_a_long_walk():
     g = bumpy(origin=(-0.5, -0.6), shape=(950, 120), res=0.01, n=450, seed=3)
     scene = rc.HeightFieldScene(g)
     cam = PinholeCamera.from_fov(128, 96, 50.0)
-    cfg = dataclasses.replace(mp.MapperConfig(), fine_size_m=1.5, coarse_radius_m=1.0,
+    cfg = dataclasses.replace(CONFIG, fine_size_m=1.5, coarse_radius_m=1.0,
                               recenter_distance_m=0.2, max_capture_poses=30)
     m = mp.IcpMapper(cfg, T_BC)
     mem, npts = [], []
@@ -326,7 +330,7 @@ def test_roll_pitch_priors(terrain):
     levelled = mp.level_rotation(tilted, up)
     assert np.degrees(angle_between(levelled, R_map_cam)) < 0.05
     # the mapper applies the gravity prior to its first capture
-    cfg = dataclasses.replace(mp.MapperConfig(), use_gravity_prior=True)
+    cfg = dataclasses.replace(CONFIG, use_gravity_prior=True)
     m = mp.IcpMapper(cfg, T_BC)
     prior = make_T(rpy_to_R(np.radians(3.0), 0, 0)) @ T0
     u = m.update(cloud_at(scene, T0), prior, 0.0, up_camera=(T0 @ T_BC)[:3, :3].T @ [0, 0, 1])

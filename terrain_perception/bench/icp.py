@@ -34,7 +34,7 @@ from terrain_perception import mapping as mp
 from terrain_perception import raycast as rc
 from terrain_perception.camera import PinholeCamera
 from terrain_perception.grid import ELEVATION, GridMap, crop_or_pad
-from terrain_perception.transforms import invert, make_T, rpy_to_R, yaw_of
+from terrain_perception.transforms import invert, make_T, rpy_to_R
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
