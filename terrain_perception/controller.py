@@ -69,6 +69,11 @@ class WalkingConfig:
                                           '(paper 000: pictures twice a second)', 0.0, 60.0)
     reach_fraction: float = param(0.93, 'Body lowered so no foot is farther than this '
                                   'fraction of the leg length from its hip [-]', 0.5, 1.0)
+    min_margin_fraction: float = param(0.3, 'Refuse a step whose COG margin would fall below '
+                                       'this fraction of stability_margin_m because a full '
+                                       'shift is out of reach [-]', 0.0, 1.0)
+    min_swing_hip_height: float = param(0.6, 'Body at least this fraction of the standing '
+                                        'height above the swing foot [-]', 0.0, 1.0)
     recenter: bool = param(True, 'Shift the body back over the centre of its four feet when '
                            'the plan is exhausted')
 
@@ -443,9 +448,13 @@ class WalkingController:
     def _com_offset(self, body: np.ndarray, feet: np.ndarray) -> Optional[np.ndarray]:
         """COM minus body origin, world x-y, for the robot at ``body`` on ``feet``."""
         T = gaitlib.pose_to_T(body)
-        q = self._ik(T, feet)
-        if q is None:
+        centres = np.array(feet, dtype=float)
+        centres[:, 2] += self.model.foot_radius_m
+        r = kinematics.solve_ik(self.model, kinematics.feet_in_base(T, centres))
+        if not r.all_ok:
+            self.last_ik_reasons = r.reasons
             return None
+        q = r.q
         com = transform_points(T, kinematics.com_base(self.model, q))
         return com[:2] - body[:2]
 
@@ -467,36 +476,94 @@ class WalkingController:
         body = goal.copy()
         margin = self.margin_m if len(stay) >= 3 else 0.0
         # Feet along the coming swing: the COG must keep the margin during all of it.
-        taus = np.linspace(0.0, 1.0, 7)
+        taus = np.linspace(0.0, 1.0, 13)
         poses = np.repeat(self._feet[None], len(taus), axis=0)
         for k, leg in enumerate(legs):
             sw = gaitlib.SwingTrajectory(self._feet[leg], targets[k],
                                          self._apex(self._feet[leg], targets[k]), 1.0)
             poses[:, leg] = sw.position(taus)
+        names = "+".join(LEG_NAMES[k] for k in legs)
+        nominal_off = transform_points(gaitlib.pose_to_T(goal), kinematics.com_base(
+            m, kinematics.standing_joint_angles(m))[None])[0, :2] - goal[:2]
+        mean, extra = nominal_off, 0.0
         for _ in range(3):
-            body[2] = min(goal[2], self._max_body_z(body, poses))
+            body[2] = self._body_z(goal[2], body, poses, legs)
             offs = [self._com_offset(body, f) for f in poses]
-            if any(o is None for o in offs):
-                self._step_error(f'body pose for stepping {"+".join(LEG_NAMES[k] for k in legs)}'
-                                 f' is out of the legs\' reach')
-                return None
-            offs = np.array(offs)
-            mean = 0.5 * (offs.min(axis=0) + offs.max(axis=0))
-            extra = float(np.linalg.norm(offs - mean, axis=1).max())
+            if all(o is not None for o in offs):
+                offs = np.array(offs)
+                mean = 0.5 * (offs.min(axis=0) + offs.max(axis=0))
+                extra = float(np.linalg.norm(offs - mean, axis=1).max())
             cog, got = gaitlib.project_into_support(goal[:2] + mean, support, margin + extra)
             body[:2] = cog - mean
-        body[2] = min(goal[2], self._max_body_z(body, poses))
+        body[2] = self._body_z(goal[2], body, poses, legs)
+        full_shift = True
+        if not self._reachable(body, poses):
+            full_shift = False
+            # The full COG shift puts a foot out of reach (e.g. past the abduction limit):
+            # shift less, towards the nominal body pose, as long as a margin remains.
+            for alpha in (0.2, 0.4, 0.6, 0.8, 1.0):
+                cand = body.copy()
+                cand[:2] = body[:2] + alpha * (goal[:2] - body[:2])
+                cand[2] = self._body_z(goal[2], cand, poses, legs)
+                if self._reachable(cand, poses):
+                    body = cand
+                    break
+            else:
+                self._step_error(f'no body pose keeps every foot in reach while stepping '
+                                 f'{names}: ' + '; '.join(self.last_ik_reasons[:2]))
+                return None
+        offs = np.array([self._com_offset(body, f) for f in poses])
+        margins = [gaitlib.support_margin(body[:2] + o, support) for o in offs]
+        got = float(min(margins))
+        if len(stay) >= 3 and got < self.config.min_margin_fraction * margin:
+            self._step_error(f'stepping {names}: the COG margin would be {got:.4f} m, below '
+                             f'{self.config.min_margin_fraction} x {margin} m with every foot '
+                             f'in reach')
+            return None
+        mean = 0.5 * (offs.min(axis=0) + offs.max(axis=0))
+        extra = float(np.linalg.norm(offs - mean, axis=1).max())
         seg = self._shift_segment(body, t0, legs_swing=legs)
-        if seg is not None and len(stay) >= 3:
+        if seg is not None and len(stay) >= 3 and full_shift:
             # The stance feet roll a little during the shift: re-project onto the support
             # triangle they will really form.
             rolled = (self._feet + seg.roll_end)[stay, :2]
-            cog, got = gaitlib.project_into_support(body[:2] + mean, rolled, margin + extra)
+            cog, got2 = gaitlib.project_into_support(body[:2] + mean, rolled, margin + extra)
             if np.linalg.norm(cog - mean - body[:2]) > 1e-4:
-                body[:2] = cog - mean
-                seg = self._shift_segment(body, t0, legs_swing=legs)
-        self.last_margin_m = got - extra
+                cand = body.copy()
+                cand[:2] = cog - mean
+                if self._reachable(cand, poses):
+                    body = cand
+                    seg = self._shift_segment(body, t0, legs_swing=legs)
+        self.last_margin_m = got
         return seg
+
+    def _reachable(self, body: np.ndarray, poses: np.ndarray) -> bool:
+        """Every foot of every pose ``(n, 4, 3)`` reachable from the level body pose."""
+        T = gaitlib.pose_to_T(body)
+        centres = np.array(poses, dtype=float)
+        centres[..., 2] += self.model.foot_radius_m
+        r = kinematics.solve_ik(self.model, kinematics.feet_in_base(T, centres))
+        if not r.all_ok:
+            self.last_ik_reasons = r.reasons
+        return r.all_ok
+
+    def _body_z(self, z_nominal: float, body: np.ndarray, poses: np.ndarray, legs) -> float:
+        """Body height for a swing: the nominal one, raised so the swing foot stays
+        ``min_swing_hip_height`` below the hips and lowered so every foot stays in reach; if
+        that is still not reachable everywhere (e.g. the abduction limit with a foot far out),
+        the nearest height in +-4 cm at which every pose is reachable."""
+        m = self.model
+        z_min = float(poses[:, legs, 2].max()) + m.foot_radius_m + \
+            self.config.min_swing_hip_height * m.standing_height_m
+        z = min(max(z_nominal, z_min), self._max_body_z(body, poses))
+        cands = z + np.array([0.0] + [s * k * 0.004 for k in range(1, 11) for s in (1, -1)])
+        R = rot_z(float(body[3]))
+        centres = np.array(poses, dtype=float)
+        centres[..., 2] += m.foot_radius_m
+        base = np.array([body[0], body[1], 0.0])
+        local = (centres[None] - base - cands[:, None, None, None] * np.array([0, 0, 1.0])) @ R
+        ok = kinematics.solve_ik(m, local).ok.all(axis=(1, 2))
+        return float(cands[int(np.argmax(ok))]) if ok.any() else z
 
     def _max_body_z(self, body: np.ndarray, feet_poses: np.ndarray) -> float:
         """Highest level-body z keeping every foot of ``feet_poses`` ``(n, 4, 3)`` within
@@ -564,7 +631,7 @@ class WalkingController:
         seg = self._build(t0, dur, 'swing', body_fn, feet_fn, rolling)
         if seg is None:
             self._step_error(f'swing of {"+".join(LEG_NAMES[k] for k in legs)} leaves the '
-                             f'leg\'s reach')
+                             f'leg\'s reach: ' + '; '.join(self.last_ik_reasons[:2]))
             self._queue = []
             return self._recenter(t0)
         after = feet0 + seg.roll_end

@@ -46,6 +46,7 @@ def test_walks_two_metres_and_ends_on_the_commanded_pose(name):
                ground_id=plane)
     assert not res.fell and res.controller_error == ''
     assert res.steps_done == len(legs)
+    assert res.extra['leg_ground_steps'] == 0          # only the feet touch the ground
     yaw0 = yaw_of(T0)
     end_xy = T0[:2, 3] + 2.0 * np.array([np.cos(yaw0), np.sin(yaw0)])
     assert np.linalg.norm(res.T_end[:2, 3] - end_xy) < 0.05

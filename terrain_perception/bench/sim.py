@@ -1,0 +1,196 @@
+"""Simulator and walking controller: real-time factor with cameras, walking speed, foot placement.
+
+* Real-time factor of the simulation as the bridge runs it (``SimSession``: physics at 500 Hz,
+  state readings at 100 Hz, stereo pairs rendered at the profile's camera rate) per robot
+  profile and image scale, on the ``rocks-6cm`` course.
+* Walking on flat ground (LittleDog-like and FROG-I-like): straight-line crawl footsteps, the
+  controller driving the simulator's PD at every physics step; speed from the ground-truth
+  base displacement, foot-placement error = horizontal distance between each landed foot and
+  its footstep.
+* Walking over ``rocks-6cm`` (LittleDog-like) with ground-truth footsteps: the project's
+  footstep planner on the true height map, replanned from the true pose and feet after every
+  executed horizon (blind to perception, to separate control from perception).
+
+JSON keys: rtf_littledog, rtf_frog (native camera resolution, cameras on), foot_err_flat_m,
+foot_err_rocks6_m (mean, LittleDog), speed_flat_mps (LittleDog), plus per-case details.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import numpy as np
+
+from terrain_perception import gait as G
+from terrain_perception.robot_model import load_robot_model
+
+DT = 1.0 / 500.0
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument('--seed', type=int, default=0, help='rocks-6cm course seed')
+
+
+def _rtf(course, robot: str, scale: float, sim_s: float) -> dict:
+    from terrain_perception.sim.session import (SimSession, SimSessionConfig,
+                                                measure_realtime_factor)
+    session = SimSession(SimSessionConfig(robot=robot, image_scale=scale, settle_s=0.1),
+                         course=course)
+    try:
+        out = measure_realtime_factor(session, sim_s, cameras=True)
+        out_nocam = measure_realtime_factor(session, min(sim_s, 1.0), cameras=False)
+    finally:
+        session.close()
+    out['rtf_physics_only'] = out_nocam['rtf']
+    out['camera_rate_hz'] = session.camera_rate_hz
+    return out
+
+
+def _flat_walk(robot: str, distance_m: float) -> dict:
+    from terrain_perception.sim.walk import make_flat_world, spawn_standing, walk
+    m = load_robot_model(robot)
+    client, plane = make_flat_world(DT)
+    try:
+        r = spawn_standing(client, m, dt_s=DT)
+        T0 = r.base_pose()
+        legs, pos = G.straight_footsteps(m, T0, distance_m)
+        wall = time.perf_counter()
+        res = walk(client, r, legs, pos, 'walk', dt_s=DT, max_time_s=40.0 * distance_m / 0.02,
+                   ground_id=plane)
+        wall = time.perf_counter() - wall
+    finally:
+        client.disconnect()
+    fwd = T0[:2, 0] / np.linalg.norm(T0[:2, 0])
+    advanced = float((res.T_end[:2, 3] - T0[:2, 3]) @ fwd)
+    end = T0[:2, 3] + distance_m * fwd
+    return {'robot': robot, 'distance_m': distance_m, 'fell': res.fell,
+            'steps': res.steps_done, 'sim_s': res.sim_time_s,
+            'speed_mps': advanced / res.sim_time_s,
+            'end_err_m': float(np.linalg.norm(res.T_end[:2, 3] - end)),
+            'foot_err_mean_m': float(np.mean(res.foot_errors_m)),
+            'foot_err_p95_m': float(np.percentile(res.foot_errors_m, 95)),
+            'rtf_walk': res.sim_time_s / wall}
+
+
+def _rocks_walk(course, start_x: float, goal_x: float, seed: int) -> dict:
+    from terrain_perception.footsteps import PlannerConfig, FootstepPlanner
+    from terrain_perception.sim.session import SimSession, SimSessionConfig
+    from terrain_perception.sim.walk import WalkRunner
+    m = load_robot_model('littledog')
+    session = SimSession(SimSessionConfig(robot='littledog', start_x_m=start_x, settle_s=0.3,
+                                          course_seed=seed), course=course)
+    try:
+        client, robot, world = session.client, session.robot, session.world
+        height = world.height_at
+        runner = WalkRunner(client, robot, dt_s=DT, height=height,
+                            ground_id=(world.floor_id, world.terrain_id))
+        # Walk gait only: the controller's trot is Shao's quasi-static one (COG on the
+        # diagonal), kept out of this measurement.
+        planner = FootstepPlanner(m, PlannerConfig(cost_source='kolter', trot_threshold_m=0.0,
+                                                   horizon_steps=4))
+        bad = planner.set_map(course)
+        if bad is not None:
+            raise ValueError(f'planner refused the course: {bad.status_text}')
+        goal = np.array([goal_x, 0.0])
+        next_leg, status, wall = None, 'ok', time.perf_counter()
+        refused = 0
+        for _ in range(400):
+            T = robot.base_pose()
+            if T[0, 3] >= goal_x - 0.05 or runner.fell:
+                break
+            feet = robot.foot_positions_world()
+            feet[:, 2] -= m.foot_radius_m
+            plan = planner.plan(T, goal, feet=feet, first_leg=next_leg)
+            if not plan.ok:
+                status = f'planner: {plan.status_text}'
+                break
+            legs = np.array([f.leg for f in plan.footsteps])
+            pos = np.array([f.position for f in plan.footsteps])
+            gait = 'trot' if plan.gait == 2 else 'walk'
+            done_before = runner.controller.steps_done
+            if not runner.run(legs, pos, gait, max_time_s=30.0):
+                # A refused step: replan from where the robot stands (receding horizon);
+                # give up after 3 refusals in a row.
+                status = f'controller: {runner.controller.last_error or "timeout"}'
+                refused += 1
+                if refused >= 3 or runner.fell:
+                    break
+                if runner.controller.steps_done == done_before:
+                    continue
+                last = legs[runner.controller.steps_done - done_before - 1]
+            else:
+                refused, status, last = 0, 'ok', legs[-1]
+            order = list(G.CRAWL_ORDER)
+            next_leg = order[(order.index(int(last)) + 1) % 4]
+        wall = time.perf_counter() - wall
+        res = runner.result()
+    finally:
+        session.close()
+    advanced = float(res.T_end[0, 3] - res.T_start[0, 3])
+    return {'robot': 'littledog', 'course': 'rocks-6cm', 'seed': seed, 'start_x_m': start_x,
+            'goal_x_m': goal_x, 'reached': bool(res.T_end[0, 3] >= goal_x - 0.05),
+            'status': status, 'fell': res.fell, 'steps': res.steps_done,
+            'advanced_m': advanced, 'sim_s': res.sim_time_s,
+            'speed_mps': advanced / max(res.sim_time_s, 1e-9),
+            'foot_err_mean_m': float(np.mean(res.foot_errors_m)) if len(res.foot_errors_m)
+            else float('nan'),
+            'foot_err_p95_m': float(np.percentile(res.foot_errors_m, 95))
+            if len(res.foot_errors_m) else float('nan'),
+            'max_tilt_deg': res.max_tilt_deg,
+            'leg_ground_checks': int(res.extra.get('leg_ground_steps', 0)),
+            'rtf_walk': res.sim_time_s / wall}
+
+
+def run(args: argparse.Namespace) -> dict:
+    from terrain_perception.terrain import make_course
+    quick = bool(getattr(args, 'quick', False))
+    seed = int(getattr(args, 'seed', 0))
+    course = make_course('rocks-6cm', seed, 0.005)
+
+    rtf_rows = []
+    scales = (1.0,) if quick else (0.5, 1.0)
+    for robot in ('littledog', 'frog'):
+        for scale in scales:
+            r = _rtf(course, robot, scale, 2.0 if quick else 6.0)
+            r.update(robot=robot, scale=scale)
+            rtf_rows.append(r)
+    print('\nReal-time factor, SimSession on rocks-6cm (physics 500 Hz, states 100 Hz, '
+          'stereo pairs at the camera rate)')
+    print(f'{"robot":<10} {"image":>9} {"cam Hz":>7} {"RTF":>7} {"RTF no cam":>11} '
+          f'{"ms/pair":>8}')
+    for r in rtf_rows:
+        print(f'{r["robot"]:<10} {r["image"]:>9} {r["camera_rate_hz"]:>7.1f} {r["rtf"]:>7.2f} '
+              f'{r["rtf_physics_only"]:>11.2f} {r["render_ms_per_pair"]:>8.1f}')
+
+    flat = [_flat_walk('littledog', 0.6 if quick else 2.0)]
+    if not quick:
+        flat.append(_flat_walk('frog', 2.0))
+    rocks = _rocks_walk(course, 0.8 if quick else 0.4, 1.6 if quick else 2.4, seed)
+    print('\nWalking (crawl, controller at every physics step, ground truth from the simulator)')
+    print(f'{"case":<22} {"dist m":>7} {"sim s":>7} {"speed m/s":>10} {"foot err mean":>14} '
+          f'{"p95":>7} {"end err":>8} {"fell":>5} {"RTF":>5}')
+    for r in flat:
+        print(f'{r["robot"] + " flat":<22} {r["distance_m"]:>7.2f} {r["sim_s"]:>7.1f} '
+              f'{r["speed_mps"]:>10.4f} {r["foot_err_mean_m"]:>14.4f} {r["foot_err_p95_m"]:>7.4f}'
+              f' {r["end_err_m"]:>8.4f} {str(r["fell"]):>5} {r["rtf_walk"]:>5.2f}')
+    r = rocks
+    print(f'{"littledog rocks-6cm":<22} {r["advanced_m"]:>7.2f} {r["sim_s"]:>7.1f} '
+          f'{r["speed_mps"]:>10.4f} {r["foot_err_mean_m"]:>14.4f} {r["foot_err_p95_m"]:>7.4f} '
+          f'{"-":>8} {str(r["fell"]):>5} {r["rtf_walk"]:>5.2f}')
+    print(f'rocks-6cm: x {r["start_x_m"]} -> {r["goal_x_m"]} m, reached={r["reached"]}, '
+          f'status: {r["status"]}, steps {r["steps"]}, max tilt {r["max_tilt_deg"]:.1f} deg')
+
+    native = {row['robot']: row for row in rtf_rows if row['scale'] == 1.0}
+    out = {
+        'rtf_littledog': native['littledog']['rtf'],
+        'rtf_frog': native['frog']['rtf'],
+        'foot_err_flat_m': flat[0]['foot_err_mean_m'],
+        'foot_err_rocks6_m': rocks['foot_err_mean_m'],
+        'speed_flat_mps': flat[0]['speed_mps'],
+        'rtf_rows': rtf_rows,
+        'flat': flat,
+        'rocks6': rocks,
+        'quick': quick,
+    }
+    return out
