@@ -217,3 +217,19 @@ def test_capture_only_on_request(ros_context, executor):
     depth = image_to_numpy(depth_msgs[0])
     assert depth_msgs[0].header.stamp == h.got['/stereo/left/image_rect'][0].header.stamp
     assert np.nanmin(depth) > 0.05 and np.isfinite(depth).mean() > 0.5
+
+
+def test_real_time_factor_paces_the_simulation(ros_context, executor):
+    import time
+    h = Harness(ros_context, executor, course_class='flat', real_time_factor=0.1)
+    spin_until(h.ex, lambda: h.t > 0.0, 10.0)
+    t0, w0 = h.t, time.monotonic()
+    spin_until(h.ex, lambda: False, 3.0)
+    sim, wall = h.t - t0, time.monotonic() - w0
+    assert 0.0 < sim <= 0.1 * wall + 0.03
+
+
+def test_missing_course_file_is_a_clear_error(ros_context):
+    with pytest.raises(ValueError, match='course_file'):
+        SimBridgeNode(context=ros_context, parameter_overrides=[
+            Parameter('course_file', value='/nonexistent/course.npz')])

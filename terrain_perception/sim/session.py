@@ -129,7 +129,10 @@ class SimSession:
         self.model = load_robot_model(cfg.robot)
         if course is None:
             if cfg.course_file:
-                course = GridMap.load(cfg.course_file)
+                try:
+                    course = GridMap.load(cfg.course_file)
+                except FileNotFoundError as exc:
+                    raise ValueError(f'course_file: {exc}') from exc
             elif cfg.course_class == 'flat':
                 course = flat_course()
             else:
