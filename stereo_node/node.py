@@ -23,11 +23,13 @@ nothing is published for it.
 
 from __future__ import annotations
 
+import dataclasses
 from collections import OrderedDict
 from dataclasses import dataclass
 from typing import Dict, Optional, Tuple
 
 import numpy as np
+from rcl_interfaces.msg import SetParametersResult
 from rclpy.node import Node
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 from std_msgs.msg import Header
@@ -35,7 +37,7 @@ from stereo_msgs.msg import DisparityImage
 from terrain_msgs.msg import GroundPlane as GroundPlaneMsg
 
 from terrain_perception.camera import StereoCamera
-from terrain_perception.config import param
+from terrain_perception.config import check_value, param
 from terrain_perception.ground_plane import GroundPlaneConfig, fit_ground_plane
 from terrain_perception.stereo import StereoConfig, StereoInputError, StereoPipeline
 from terrain_ros.conversions import (camera_info_to_stereo, disparity_to_msg, image_to_numpy,
@@ -116,6 +118,9 @@ class StereoNode(Node):
                                                        on_change=self._on_stereo_cfg)
         self.plane_cfg: GroundPlaneConfig = declare_config(
             self, GroundPlaneConfig, prefix='ground_plane', on_change=self._on_plane_cfg)
+        # Per-field checks run in declare_config; this one refuses runtime sets that break a
+        # rule across fields or of the whole config (e.g. num_disparities % 16).
+        self.add_on_set_parameters_callback(self._check_whole_stereo_config)
 
         self.counters = Counters(self)
         self._sync = StereoSync(self.node_cfg.sync_queue_size)
@@ -145,6 +150,17 @@ class StereoNode(Node):
         self.create_timer(self.node_cfg.diagnostics_period_s, self.counters.publish)
 
     # ------------------------------------------------------------------ parameters
+
+    def _check_whole_stereo_config(self, params) -> SetParametersResult:
+        names = {f.name for f in dataclasses.fields(StereoConfig)}
+        try:
+            changes = {p.name: check_value(StereoConfig, p.name, p.value)
+                       for p in params if p.name in names}
+            if changes:
+                dataclasses.replace(self.stereo_cfg, **changes)
+        except ValueError as exc:
+            return SetParametersResult(successful=False, reason=str(exc))
+        return SetParametersResult(successful=True)
 
     def _on_node_cfg(self, cfg: StereoNodeConfig) -> None:
         old, self.node_cfg = self.node_cfg, cfg

@@ -237,3 +237,18 @@ def test_rate_mode_keeps_only_the_newest_pair(ros_context, scene):
     assert node.counters['stale_pair'] == 2
     assert node._pending[0].header.stamp == sec_to_stamp(1.2)
     node.destroy_node()
+
+
+def test_runtime_parameters_are_checked_and_applied(ros_context):
+    node = StereoNode(context=ros_context)
+    res = node.set_parameters([Parameter('num_disparities', value=40)])[0]
+    assert not res.successful and 'multiple of 16' in res.reason
+    assert node.stereo_cfg.num_disparities == 64
+    res = node.set_parameters([Parameter('block_size_px', value=99)])[0]
+    assert not res.successful and 'block_size_px' in res.reason
+    assert node.set_parameters([Parameter('num_disparities', value=96)])[0].successful
+    assert node.stereo_cfg.num_disparities == 96
+    assert node.set_parameters([Parameter('ground_plane.inlier_threshold_m',
+                                          value=0.01)])[0].successful
+    assert node.plane_cfg.inlier_threshold_m == 0.01
+    node.destroy_node()
