@@ -54,15 +54,17 @@ def test_heightfield_matches_grid_under_ray_casts(client, course):
 
 
 def test_heightfield_placement_for_an_asymmetric_grid(client):
-    """A ramp on an off-centre grid: catches swapped axes and pybullet's AABB centring."""
+    """A ramp on an off-centre grid: catches swapped axes and pybullet's AABB centring; its
+    low end dips below 0 and the floor must not fill that pit."""
     x = np.arange(30)[:, None] * 0.004 + np.zeros((1, 17))
     y = np.arange(17)[None, :] * 0.001 + np.zeros((30, 1))
-    grid = GridMap(0.02, (1.3, -0.7), (30, 17), {ELEVATION: 0.2 + x + y})
+    grid = GridMap(0.02, (1.3, -0.7), (30, 17), {ELEVATION: -0.05 + x + y})
     world = SimWorld(client, grid, SMALL)
     xs, ys = grid.cell_centers()
     X, Y = np.meshgrid(xs, ys, indexing='ij')
     got = world.ray_heights(np.column_stack([X.ravel(), Y.ravel()])).reshape(X.shape)
     np.testing.assert_allclose(got, grid[ELEVATION], atol=1e-4)
+    assert world.ray_heights(np.array([[0.0, 0.0]]))[0] == pytest.approx(-0.05, abs=1e-6)
 
 
 def test_depth_and_projection_match_analytic_floor(client):

@@ -113,17 +113,17 @@ def _grid_mesh(xs: np.ndarray, ys: np.ndarray, z: np.ndarray) -> Tuple[np.ndarra
     return verts, idx, normals
 
 
-def _rect_mesh(x0: float, x1: float, y0: float, y1: float, cell: float
+def _rect_mesh(x0: float, x1: float, y0: float, y1: float, cell: float, z: float = 0.0
                ) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """A flat (z = 0) rectangle tessellated into cells of at most ``cell`` [m]."""
+    """A flat rectangle at height ``z`` tessellated into cells of at most ``cell`` [m]."""
     nx = max(1, int(np.ceil((x1 - x0) / cell)))
     ny = max(1, int(np.ceil((y1 - y0) / cell)))
     return _grid_mesh(np.linspace(x0, x1, nx + 1), np.linspace(y0, y1, ny + 1),
-                      np.zeros((nx + 1, ny + 1)))
+                      np.full((nx + 1, ny + 1), float(z)))
 
 
 def terrain_mesh_parts(xs: np.ndarray, ys: np.ndarray, z: np.ndarray, block: int,
-                       margin_m: float, ground_cell_m: float
+                       margin_m: float, ground_cell_m: float, floor_z: float = 0.0
                        ) -> List[Tuple[np.ndarray, np.ndarray, np.ndarray]]:
     """Visual mesh pieces ``(vertices, indices, normals)`` of a height grid plus flat ground.
 
@@ -159,10 +159,10 @@ def terrain_mesh_parts(xs: np.ndarray, ys: np.ndarray, z: np.ndarray, block: int
     if margin_m > 0:
         X0, X1, Y0, Y1 = xs[0], xs[-1], ys[0], ys[-1]
         m, c = margin_m, ground_cell_m
-        parts += [_rect_mesh(X0 - m, X0, Y0 - m, Y1 + m, c),
-                  _rect_mesh(X1, X1 + m, Y0 - m, Y1 + m, c),
-                  _rect_mesh(X0, X1, Y0 - m, Y0, c),
-                  _rect_mesh(X0, X1, Y1, Y1 + m, c)]
+        parts += [_rect_mesh(X0 - m, X0, Y0 - m, Y1 + m, c, floor_z),
+                  _rect_mesh(X1, X1 + m, Y0 - m, Y1 + m, c, floor_z),
+                  _rect_mesh(X0, X1, Y0 - m, Y0, c, floor_z),
+                  _rect_mesh(X0, X1, Y1, Y1 + m, c, floor_z)]
     return parts
 
 
@@ -195,8 +195,9 @@ class SimWorld:
 
     The heightfield's vertex ``[i, j]`` is at the centre of grid cell ``[i, j]`` with height
     ``elevation[i, j]``; between centres pybullet interpolates linearly (two triangles per
-    cell). NaN heights are set to 0. Beyond the course: a collision plane at z = 0 and a flat
-    textured visual ground of ``ground_margin_m``.
+    cell). NaN heights are set to 0. Beyond the course: a collision plane and a flat textured
+    visual ground of ``ground_margin_m`` at z = 0 (or at the course's lowest height if that is
+    below 0, so the floor never fills a pit).
 
     Attributes:
         client: the caller's ``BulletClient``.
@@ -218,6 +219,8 @@ class SimWorld:
         self.course[ELEVATION] = z
         self.texture_seed = int(course.metadata.get('seed', 0)) if texture_seed is None \
             else int(texture_seed)
+        # the floor never rises into a pit of the course (courses are >= 0 with the floor at 0)
+        self.floor_z = min(0.0, float(z.min()))
         self.floor_id = self._add_floor()
         self.terrain_id = self._add_heightfield(z)
         self._add_visual(z)
@@ -233,7 +236,7 @@ class SimWorld:
     def _add_floor(self) -> int:
         c = self.client
         shape = c.createCollisionShape(c.GEOM_PLANE)
-        body = c.createMultiBody(0, shape, self._no_visual())
+        body = c.createMultiBody(0, shape, self._no_visual(), basePosition=[0, 0, self.floor_z])
         c.changeDynamics(body, -1, lateralFriction=self.cfg.friction, restitution=0.0)
         return body
 
@@ -270,7 +273,7 @@ class SimWorld:
             cv2.imwrite(str(path), texture[:, :, ::-1])
             tex_id = c.loadTexture(str(path))
         parts = terrain_mesh_parts(xs, ys, z, _BLOCK_QUADS, cfg.ground_margin_m,
-                                   cfg.ground_cell_m)
+                                   cfg.ground_cell_m, self.floor_z)
         self.visual_ids = []
         for verts, idx, normals in _merge_parts(parts, _MAX_BODY_VERTICES):
             uvs = verts[:, :2] / cfg.texture_tile_m
