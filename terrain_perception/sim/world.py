@@ -130,8 +130,9 @@ def terrain_mesh_parts(xs: np.ndarray, ys: np.ndarray, z: np.ndarray, block: int
     The grid (vertices at ``xs`` x ``ys``) is cut into blocks of ``block`` x ``block`` quads;
     a block whose vertices are all at 0 becomes part of a flat rectangle (runs of flat blocks
     merged along x, tessellated at ``ground_cell_m``), any other block keeps every vertex.
-    Flat ground of ``margin_m`` surrounds the grid in four strips. Flat and fine pieces meet only where heights are 0, so the
-    surface has no cracks (only T-junctions on flat lines).
+    Flat ground of ``margin_m`` at ``floor_z`` surrounds the grid in four strips. Flat and
+    fine pieces meet only where heights are 0, so the surface has no cracks (only T-junctions
+    on flat lines).
     """
     nx, ny = z.shape
     normals_all = _grid_normals(xs, ys, z)
