@@ -193,7 +193,8 @@ class StereoNode(Node):
                                                  f'{k[0]}.{k[1]:09d} s arrived; image dropped')
         if pair is None:
             return
-        if self._pending is not None:
+        if self._pending is not None and not self.node_cfg.capture_on_request:
+            # (With capture requests, unrequested pairs are skipped by design, not dropped.)
             self.counters.bump('stale_pair', 'a newer pair arrived before the previous one '
                                              'was processed; the older pair was dropped')
         self._pending = pair

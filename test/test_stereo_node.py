@@ -3,6 +3,7 @@ bad input is counted, logged and never published."""
 
 import numpy as np
 import pytest
+from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2
@@ -151,6 +152,7 @@ def test_capture_request_mode_processes_only_requested_pairs(ros_context, execut
     h.send_pair(left, right, 4.0)                 # request consumed: not processed
     h.spin(lambda: False, 0.5)
     assert len(h.got['points']) == 1
+    assert not h.node.counters.counts              # skipping unrequested pairs is no error
 
 
 def _bad_cases(left, right):
@@ -204,10 +206,17 @@ def test_every_bad_input_is_counted_and_nothing_is_published(ros_context, execut
     # The node kept running and published only the one good pair.
     assert len(h.got['points']) == 1
     assert h.got['points'][0].header.stamp == sec_to_stamp(t + 1.0)
-    diag = dict(h.node.counters.counts)
-    assert diag == {'missing_camera_info': 1, 'bad_camera_info': 1, 'size_mismatch': 1,
-                    'encoding_mismatch': 1, 'bad_encoding': 2, 'black_image': 1,
-                    'saturated_image': 1, 'unpaired_stamp': 2}
+    want = {'missing_camera_info': 1, 'bad_camera_info': 1, 'size_mismatch': 1,
+            'encoding_mismatch': 1, 'bad_encoding': 2, 'black_image': 1, 'saturated_image': 1,
+            'unpaired_stamp': 2}
+    assert dict(h.node.counters.counts) == want
+    # The same counts go out on ~/diagnostics.
+    diags = []
+    h.io.create_subscription(DiagnosticArray, '/stereo_node/diagnostics', diags.append,
+                             RELIABLE_QOS)
+    assert h.spin(lambda: diags, 5.0)
+    got = {kv.key: int(kv.value) for kv in diags[-1].status[0].values}
+    assert got == want
 
 
 def _img(t):
