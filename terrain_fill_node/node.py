@@ -3,7 +3,8 @@
 Subscriptions (reliable, transient local):
     /map/fine            terrain_msgs/TerrainGrid: layers ``elevation`` and (optionally)
                          ``observed`` (1 = measured) and ``upper_bound`` [m]
-    /map/capture_poses   geometry_msgs/PoseArray: camera poses in the grid's frame
+    /map/capture_poses   geometry_msgs/PoseArray: camera (optical frame) poses in the grid's
+                         frame; each capture bounds the cells in its view cone
 Publications:
     /map/filled          terrain_msgs/TerrainGrid (reliable, transient local), layers
                          ``elevation`` (observed + filled) [m], ``observed`` [0/1],
@@ -38,7 +39,7 @@ from terrain_perception.config import param
 from terrain_perception.features import CostConfig
 from terrain_perception.fill import BoundsConfig, FillConfig, RayConfig, TerrainFiller
 from terrain_perception.grid import ELEVATION, GridMap
-from terrain_ros.conversions import grid_to_msg, msg_to_grid
+from terrain_ros.conversions import grid_to_msg, msg_to_grid, pose_to_matrix
 from terrain_ros.node import Counters, run_node
 from terrain_ros.params import declare_config
 from terrain_ros.qos import LATCHED_QOS
@@ -99,7 +100,7 @@ class TerrainFillNode(Node):
         self.filler: Optional[TerrainFiller] = None
         self._library: Optional[tuple] = None
         self._grid: Optional[GridMap] = None
-        self._cams: np.ndarray = np.zeros((0, 3))
+        self._cams: np.ndarray = np.zeros((0, 4, 4))   # capture poses T_map_camera
         self._cams_frame: Optional[str] = None
         self._dirty = False
         self.last_output: Optional[GridMap] = None
@@ -171,12 +172,12 @@ class TerrainFillNode(Node):
         self._dirty = True
 
     def _on_poses(self, msg: PoseArray) -> None:
-        pos = np.array([[p.position.x, p.position.y, p.position.z] for p in msg.poses],
-                       dtype=np.float64).reshape(-1, 3)
-        if not np.isfinite(pos).all():
-            self.counters.bump('bad_poses', 'capture poses contain NaN/inf positions; ignored')
+        try:
+            poses = np.array([pose_to_matrix(p) for p in msg.poses]).reshape(-1, 4, 4)
+        except ValueError as exc:
+            self.counters.bump('bad_poses', f'capture poses refused: {exc}')
             return
-        self._cams = pos
+        self._cams = poses
         self._cams_frame = msg.header.frame_id
         self._dirty = True
 
@@ -192,7 +193,7 @@ class TerrainFillNode(Node):
         if len(cams) and self._cams_frame and self._cams_frame != grid.frame_id:
             self.counters.bump('frame_mismatch', f'capture poses are in {self._cams_frame!r}, '
                                f'the grid in {grid.frame_id!r}; poses ignored')
-            cams = np.zeros((0, 3))
+            cams = np.zeros((0, 4, 4))
         try:
             out = self.filler.update(grid, cams)
         except ValueError as exc:

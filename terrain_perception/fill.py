@@ -279,63 +279,110 @@ def line_of_sight_bounds(shape: Tuple[int, int], resolution_m: float, origin_xy:
     return np.where(np.isfinite(bound), bound, np.nan)
 
 
-def rays_from_captures(heights: np.ndarray, resolution_m: float, origin_xy: Sequence[float],
-                       camera_positions: np.ndarray, max_range_m: float = 2.0,
-                       tol_m: float = 0.002, stride: int = 1,
-                       step_cells: float = 0.5) -> Tuple[np.ndarray, np.ndarray]:
-    """Rays (camera, point) for a map that does not record which camera saw which cell.
+def bounds_from_captures(heights: np.ndarray, resolution_m: float, origin_xy: Sequence[float],
+                         camera_positions: np.ndarray, max_range_m: float = 1.0,
+                         tol_m: float = 0.0, angular_step_rad: float = 0.0,
+                         target: Optional[np.ndarray] = None,
+                         camera_axes: Optional[np.ndarray] = None,
+                         fov_half_angle_rad: float = np.pi,
+                         range_step_cells: float = 0.5) -> np.ndarray:
+    """Line-of-sight bounds [m] for a map that does not record which camera saw which cell.
 
-    Pairs every camera position with every observed cell centre (at its height) within
-    ``max_range_m`` and keeps a pair only if the segment passes above every *observed* cell it
-    crosses (within ``tol_m``), i.e. if it could have been a line of sight. Cells on the edge
-    of an unknown region are always used; the others every ``stride``-th in each axis.
+    A viewshed per capture along a fan of rays: from each camera's x-y position, rays every
+    ``angular_step_rad`` (default: half a cell at ``max_range_m``) are sampled every
+    ``range_step_cells``; every sample takes the height of the cell it lies in (cells are flat
+    tops). Along a ray with elevation slope ``s = (h - z_cam) / r``, an observed sample is seen
+    when ``s`` is not below the steepest slope in front of it (within ``tol_m``): the classic
+    horizon test, with only observed cells as occluders (an unobserved one cannot be
+    detected). A sample in front of a seen sample lies under the line of sight to that cell's
+    centre, so a target cell it falls in gets the bound ``z_cam + r * min(s_centre of the seen
+    samples beyond)`` (``s_centre`` = slope to the seen cell's centre, ``r`` = distance to the
+    target cell's centre: cell heights are the surface at cell centres); the
+    minimum over samples and captures is kept. Only seen samples inside the view cone
+    (``camera_axes``, ``fov_half_angle_rad``) and within ``max_range_m`` (3-D) count: a camera
+    vouches only for what it looked at.
+
+    Args:
+        heights: (nx, ny) observed heights [m], NaN = unobserved.
+        resolution_m, origin_xy: grid geometry [m].
+        camera_positions: (K, 3) camera centres [m] in the grid frame.
+        max_range_m: farthest 3-D distance [m] a capture is assumed to measure.
+        tol_m: height tolerance [m] of the horizon test (map noise).
+        angular_step_rad: azimuth step of the ray fan [rad]; 0 = automatic.
+        target: optional (nx, ny) bool of the cells that want bounds (default: unobserved).
+        camera_axes: optional (K, 3) viewing directions (optical z axes) in the grid frame.
+        fov_half_angle_rad: half-angle of the view cone around each axis [rad].
+        range_step_cells: sample spacing along each ray [cells].
 
     Returns:
-        (origins (N, 3), points (N, 3)) [m] in the grid frame, for :func:`line_of_sight_bounds`.
-
-    Note: an unobserved occluder between a kept pair is undetectable here, so this is weaker
-    than the true rays; feed the real (camera, point) pairs when they are available.
+        (nx, ny) float64 bounds [m]; NaN = no bound (and on non-target cells).
     """
-    h = np.asarray(heights, dtype=np.float64)
+    h = np.asarray(heights, np.float64)
     nx, ny = h.shape
-    cams = np.asarray(camera_positions, dtype=np.float64).reshape(-1, 3)
-    cams = cams[np.isfinite(cams).all(1)]
-    known = np.isfinite(h)
-    edge = known & ndimage.binary_dilation(~known, np.ones((3, 3), bool))
-    sub = np.zeros_like(known)
-    sub[::stride, ::stride] = True
-    use = known & (edge | sub)
-    ii, jj = np.nonzero(use)
-    o_xy = np.asarray(origin_xy, dtype=np.float64)
-    cell_pts = np.c_[o_xy[0] + (ii + 0.5) * resolution_m, o_xy[1] + (jj + 0.5) * resolution_m,
-                     h[ii, jj]]
-    out_o, out_p = [], []
-    for c in cams:  # one camera at a time keeps memory at (cells x samples)
-        d = np.linalg.norm(cell_pts - c, axis=1)
-        pts = cell_pts[d <= max_range_m]
-        if len(pts) == 0:
+    observed = np.isfinite(h)
+    tgt = ~observed if target is None else np.asarray(target, bool)
+    step = angular_step_rad if angular_step_rad > 0 else 0.5 * resolution_m / max_range_m
+    o_xy = np.asarray(origin_xy, np.float64)
+    cams = np.asarray(camera_positions, np.float64).reshape(-1, 3)
+    axes = None
+    if camera_axes is not None and fov_half_angle_rad < np.pi:
+        axes = np.asarray(camera_axes, np.float64).reshape(-1, 3)
+        if axes.shape != cams.shape:
+            raise ValueError(f'camera_axes {axes.shape} and positions {cams.shape} differ')
+        axes = axes / np.linalg.norm(axes, axis=1, keepdims=True)
+    cos_fov = np.cos(fov_half_angle_rad)
+    rr = np.arange(1, int(np.ceil(max_range_m / (range_step_cells * resolution_m))) + 1) \
+        * range_step_cells * resolution_m
+    hflat = h.ravel()
+    bound = np.full(nx * ny, np.inf)
+    for k, c in enumerate(cams):
+        if not np.isfinite(c).all():
             continue
-        a = (c[:2] - o_xy) / resolution_m
-        p = (pts[:, :2] - o_xy) / resolution_m
-        ns = np.maximum(np.ceil(np.linalg.norm(p - a, axis=1) / step_cells), 1).astype(int) + 1
-        ray = np.repeat(np.arange(len(pts)), ns)
-        first = np.repeat(np.cumsum(ns) - ns, ns)
-        t = (np.arange(ray.size) - first) / (ns[ray] - 1).astype(np.float64)
-        xy = a + t[:, None] * (p[ray] - a)
-        z = c[2] + t * (pts[ray, 2] - c[2])
-        ij = np.floor(xy).astype(np.int64)
-        inside = (ij[:, 0] >= 0) & (ij[:, 0] < nx) & (ij[:, 1] >= 0) & (ij[:, 1] < ny)
-        hz = np.full(ray.size, np.nan)
-        hz[inside] = h[ij[inside, 0], ij[inside, 1]]
-        end = np.floor(p).astype(np.int64)[ray]
-        at_end = (ij[:, 0] == end[:, 0]) & (ij[:, 1] == end[:, 1])
-        blocked = np.isfinite(hz) & ~at_end & (hz > z + tol_m)
-        bad = np.bincount(ray, weights=blocked, minlength=len(pts)) > 0
-        out_o.append(np.broadcast_to(c, (int((~bad).sum()), 3)))
-        out_p.append(pts[~bad])
-    if not out_p:
-        return np.zeros((0, 3)), np.zeros((0, 3))
-    return np.concatenate(out_o), np.concatenate(out_p)
+        az = np.arange(-np.pi, np.pi, step)
+        if axes is not None:
+            # keep azimuths whose vertical half-plane can meet the view cone at all: the
+            # largest cosine to the axis in the half-plane is |(a_h cos(dphi), a_z)|
+            a_h = np.hypot(axes[k, 0], axes[k, 1])
+            cphi = np.cos(az - np.arctan2(axes[k, 1], axes[k, 0]))
+            best = np.where(cphi > 0, np.hypot(a_h * cphi, axes[k, 2]), abs(axes[k, 2]))
+            az = az[best >= cos_fov - 1e-9]
+            if az.size == 0:
+                continue
+        x = c[0] + np.cos(az)[:, None] * rr[None, :]              # (n_az, n_r)
+        y = c[1] + np.sin(az)[:, None] * rr[None, :]
+        i = np.floor((x - o_xy[0]) / resolution_m).astype(np.int64)
+        j = np.floor((y - o_xy[1]) / resolution_m).astype(np.int64)
+        inside = (i >= 0) & (i < nx) & (j >= 0) & (j < ny)
+        flat = np.where(inside, i * ny + j, 0)
+        hz = np.where(inside, hflat[flat], np.nan)
+        obs = np.isfinite(hz)
+        slope = np.where(obs, (hz - c[2]) / rr, -np.inf)
+        front = np.maximum.accumulate(slope, axis=1)
+        front = np.concatenate([np.full((len(az), 1), -np.inf), front[:, :-1]], axis=1)
+        seen = obs & (slope >= front - tol_m / rr)
+        dz = np.where(obs, hz - c[2], 0.0)
+        seen &= rr * rr + dz * dz <= max_range_m ** 2
+        if axes is not None:
+            d3 = np.sqrt(rr * rr + dz * dz)
+            cosang = (np.cos(az)[:, None] * rr * axes[k, 0] + np.sin(az)[:, None] * rr
+                      * axes[k, 1] + dz * axes[k, 2]) / d3
+            seen &= cosang >= cos_fov
+        # the line of sight ends on the seen cell's centre (where its height was measured),
+        # not on the sample: a flat-topped cell seen at its near edge would otherwise give a
+        # ray lower than the real one
+        rcen = np.hypot(o_xy[0] + (i + 0.5) * resolution_m - c[0],
+                        o_xy[1] + (j + 0.5) * resolution_m - c[1])
+        with np.errstate(divide='ignore', invalid='ignore'):
+            slope_end = (hz - c[2]) / rcen
+        beyond = np.where(seen, slope_end, np.inf)[:, ::-1]
+        beyond = np.minimum.accumulate(beyond, axis=1)[:, ::-1]
+        beyond = np.concatenate([beyond[:, 1:], np.full((len(az), 1), np.inf)], axis=1)
+        want = inside & np.isfinite(beyond) & tgt.ravel()[flat]
+        # evaluated at the target cell's centre distance: the map's height of a cell is the
+        # surface at its centre, and the line dips lowest at the far edge of a flat top
+        np.minimum.at(bound, flat[want], (c[2] + rcen * beyond)[want])
+    bound = np.where(tgt.ravel() & np.isfinite(bound), bound, np.nan)
+    return bound.reshape(nx, ny)
 
 
 # --------------------------------------------------------------------------------------------
@@ -677,24 +724,29 @@ class RayConfig:
 
     max_range_m: float = param(1.0, 'farthest observed cell paired with a capture position '
                                '[m] (the range the camera measures)', 0.05, 100.0)
-    tol_m: float = param(0.002, 'a candidate ray may pass this far below an observed cell '
-                         'and still count as a line of sight [m] (map noise)', 0.0, 1.0)
-    stride_cells: int = param(2, 'observed cells used as ray ends: every stride-th in each '
-                              'axis, plus all cells on the edge of an unobserved region', 1, 64)
+    tol_m: float = param(0.0, 'an observed cell this far below the horizon still counts as '
+                         'seen from a capture [m]; > 0 tolerates map noise but lets rays dip '
+                         'below occluders (bounds up to tol_m too low)', 0.0, 1.0)
+    angular_step_rad: float = param(0.0, 'azimuth bin of the per-capture viewshed [rad]; '
+                                    '0 = half a cell at max_range_m', 0.0, 0.5)
+    fov_half_angle_deg: float = param(
+        40.0, 'only cells within this angle of a capture\'s optical axis are used for its '
+        'bounds [deg] (LittleDog: 62 x 58 deg field of view, ~42 deg to the corners); 180 = '
+        'all around', 1.0, 180.0)
 
 
 class TerrainFiller:
     """Keeps a filled copy of a changing height map and refills only what a change touches.
 
     The fill method is ``fill_config.method`` (Fill-Terrain by default; any baseline works).
-    ``update(grid, camera_positions)`` returns a new :class:`~terrain_perception.grid.GridMap`
+    ``update(grid, camera_poses)`` returns a new :class:`~terrain_perception.grid.GridMap`
     with layers ``elevation`` (observed heights + filled ones), ``observed`` (1 = measured;
     never set by filling), ``upper_bound`` (line-of-sight bound, NaN = none), ``filled``
     (1 = synthesised) and ``cost`` (:func:`terrain_perception.features.cost_map`).
 
     Observed cells are those with ``observed == 1`` when the input has that layer, else those
     with a finite elevation. Bounds are the minimum of the input's ``upper_bound`` layer (if
-    any) and those reconstructed from ``camera_positions`` (:func:`rays_from_captures`).
+    any) and those reconstructed from the capture poses (:func:`bounds_from_captures`).
 
     Incremental rule: cells whose observed height or bound changed (or that are new after the
     grid moved by whole cells) mark the holes (8-connected unobserved regions) within one
@@ -749,20 +801,27 @@ class TerrainFiller:
             raise ValueError('every cell is unknown: nothing observed to fill from')
         return np.where(mask, elev, np.nan)
 
-    def bounds(self, grid, heights: np.ndarray, camera_positions: np.ndarray) -> np.ndarray:
-        """Line-of-sight bounds [m] of the unobserved cells (NaN = none), checked."""
+    def bounds(self, grid, heights: np.ndarray, camera_poses: np.ndarray) -> np.ndarray:
+        """Line-of-sight bounds [m] of the unobserved cells (NaN = none), checked.
+
+        ``camera_poses``: (K, 4, 4) T_grid_camera (optical frame) or (K, 3) positions."""
         from terrain_perception.grid import UPPER_BOUND
         unobserved = ~np.isfinite(heights)
         ub = np.full(heights.shape, np.nan)
-        cams = np.asarray(camera_positions, np.float64).reshape(-1, 3)
+        poses = np.asarray(camera_poses, np.float64)
+        if poses.ndim == 3:
+            if poses.shape[1:] != (4, 4):
+                raise ValueError(f'camera poses must be (K, 4, 4) or (K, 3), got {poses.shape}')
+            cams, axes = poses[:, :3, 3], poses[:, :3, 2]
+        else:
+            cams, axes = poses.reshape(-1, 3), None
         if len(cams):
             rc = self.ray_config
-            o, p = rays_from_captures(heights, grid.resolution_m, grid.origin_xy, cams,
-                                      rc.max_range_m, rc.tol_m, rc.stride_cells,
-                                      self.bounds_config.step_cells)
-            if len(p):
-                ub = line_of_sight_bounds(heights.shape, grid.resolution_m, grid.origin_xy, o,
-                                          p, self.bounds_config, target=unobserved)
+            ub = bounds_from_captures(heights, grid.resolution_m, grid.origin_xy, cams,
+                                      rc.max_range_m, rc.tol_m, rc.angular_step_rad,
+                                      target=unobserved, camera_axes=axes,
+                                      fov_half_angle_rad=np.radians(rc.fov_half_angle_deg)
+                                      ) + self.bounds_config.margin_m
         if UPPER_BOUND in grid:
             given = np.asarray(grid[UPPER_BOUND], np.float64)
             check_bounds(heights, given)           # refuses bounds below observed heights
@@ -793,8 +852,11 @@ class TerrainFiller:
         out['new'] = np.isnan(out['elev'])
         return out
 
-    def update(self, grid, camera_positions: np.ndarray = np.zeros((0, 3))):
-        """Fill ``grid`` (a GridMap) and return the output GridMap (see class docstring)."""
+    def update(self, grid, camera_poses: np.ndarray = np.zeros((0, 3))):
+        """Fill ``grid`` (a GridMap) and return the output GridMap (see class docstring).
+
+        ``camera_poses``: (K, 4, 4) capture poses T_grid_camera (optical frame, z = viewing
+        direction) or (K, 3) positions (then every direction counts as looked at)."""
         from terrain_perception.features import cost_map, window_cells
         from terrain_perception.grid import (COST, ELEVATION, FILLED, OBSERVED, UPPER_BOUND,
                                              GridMap)
@@ -802,7 +864,7 @@ class TerrainFiller:
             raise ValueError(f'the grid has {grid.resolution_m:g} m cells but the terrain '
                              f'library {self.library_resolution_m:g} m; they must match')
         heights = self.observed_heights(grid)
-        ub = self.bounds(grid, heights, camera_positions)
+        ub = self.bounds(grid, heights, camera_poses)
         observed = np.isfinite(heights)
         w = self.fill_config.window_cells
         prev = self._aligned_prev(grid)
@@ -833,7 +895,9 @@ class TerrainFiller:
                 crop = elev.copy()
                 crop[refill] = np.nan
                 i0, i1, j0, j1 = 0, grid.shape[0], 0, grid.shape[1]
-            res = fill(crop, ub[i0:i1, j0:j1], self.library, self.fill_config)
+            # bounds constrain the cells being filled; kept fills are context, like observations
+            ub_crop = np.where(np.isnan(crop), ub[i0:i1, j0:j1], np.nan)
+            res = fill(crop, ub_crop, self.library, self.fill_config)
             region = refill[i0:i1, j0:j1]
             elev[i0:i1, j0:j1][region] = res.heights[region]
         # cost: recompute where heights changed, plus the reach of the cost windows

@@ -9,7 +9,7 @@ from terrain_perception.config import make_config
 from terrain_perception.fill import (BoundsConfig, FillConfig, PatchLibrary, _choose, fill,
                                      fill_constant, fill_constraints_as_heights, fill_inpaint,
                                      fill_shao_rows, fill_terrain, gaussian_weights,
-                                     line_of_sight_bounds, rays_from_captures)
+                                     line_of_sight_bounds, bounds_from_captures)
 
 RES = 0.01
 
@@ -78,22 +78,76 @@ def test_upper_bounds_on_a_1d_profile_with_an_occluded_dip():
     assert np.all(np.diff(ub[dip]) < 0) or np.all(np.diff(ub[dip]) > 0)
 
 
-def test_rays_from_captures_recover_the_true_line_of_sight_bounds():
+def test_viewshed_bounds_on_the_1d_profile_match_a_loop_over_ray_samples():
     h, cam = _profile()
+    cam = cam + np.array([0.0013, 0.0, 0.0])       # samples off the cell edges
     vis = _visible_1d(h, cam)
     observed = np.where(vis, h, np.nan)[:, None]
-    o, p = rays_from_captures(observed, RES, (0.0, 0.0), cam[None], max_range_m=5.0,
-                              tol_m=1e-9)
-    pts = np.c_[(np.flatnonzero(vis) + 0.5) * RES, np.full(vis.sum(), 0.5 * RES), h[vis]]
-    assert len(p) == len(pts)
-    np.testing.assert_allclose(np.sort(p[:, 0]), np.sort(pts[:, 0]))
-    a = line_of_sight_bounds((40, 1), RES, (0.0, 0.0), o, p)
-    b = line_of_sight_bounds((40, 1), RES, (0.0, 0.0), cam, pts)
-    np.testing.assert_array_equal(a, b)
-    # a camera hidden behind the block sees no point beyond it, so contributes no bound there
-    low = np.array([[0.155, 0.005, 0.0]])
-    o2, p2 = rays_from_captures(observed, RES, (0.0, 0.0), low, max_range_m=5.0)
-    assert (p2[:, 0] < 0.15).all() or (p2[:, 0] >= 0.18).sum() == 0
+    ub = bounds_from_captures(observed, RES, (0.0, 0.0), cam[None], max_range_m=0.5,
+                              tol_m=0.0)[:, 0]
+    # oracle: one ray along +x sampled every half cell, flat-topped cells as occluders
+    step = 0.5 * RES
+    r = step * np.arange(1, int(0.5 / step) + 1)
+    cell = np.floor((cam[0] + r) / RES).astype(int)
+    r, cell = r[cell < 40], cell[cell < 40]
+    hz = np.where(vis[cell], h[cell], np.nan)
+    slope = (hz - cam[2]) / r
+    seen = np.zeros(len(r), bool)
+    steepest = -np.inf
+    for m in range(len(r)):
+        if np.isfinite(slope[m]):
+            seen[m] = slope[m] >= steepest
+            steepest = max(steepest, slope[m])
+    # the line ends on the seen cell's centre and is evaluated at the hidden cell's centre
+    rcen = (cell + 0.5) * RES - cam[0]
+    expected = np.full(40, np.inf)
+    for m in range(len(r)):
+        later = [(hz[q] - cam[2]) / rcen[q] for q in range(m + 1, len(r)) if seen[q]]
+        if not vis[cell[m]] and later:
+            expected[cell[m]] = min(expected[cell[m]], cam[2] + rcen[m] * min(later))
+    expected[np.isinf(expected)] = np.nan
+    hidden = ~vis
+    assert hidden[18:22].all() and np.isfinite(expected[18:22]).all()
+    np.testing.assert_allclose(ub, expected, atol=1e-9, equal_nan=True)
+    assert np.all(ub[np.isfinite(ub)] >= h[np.isfinite(ub)])      # true bounds
+    assert np.all(ub[19:22] < 0.05)                                 # below the block top
+
+
+def test_viewshed_bounds_hold_on_a_2d_scene_and_respect_the_view_cone():
+    from terrain_perception.grid import GridMap
+    from terrain_perception.raycast import visible_cells
+    from terrain_perception.transforms import make_T
+    n = 60
+    truth = smooth_terrain(n, 4, amp=0.01) + 0.01
+    truth[25:28, 15:45] = 0.06                          # a wall across the view
+    truth[3:7, 48:51] = 0.06                            # a block beside the camera
+    grid = GridMap.from_layers(RES, (0, 0), {'elevation': truth.astype(np.float32)})
+    truth = grid['elevation'].astype(np.float64)
+    cam = np.array([0.02, 0.30, 0.25])
+    T = make_T(np.eye(3), cam)
+    seen = visible_cells(grid, T, max_range_m=1.0)
+    hidden = ~seen
+    observed = np.where(seen, truth, np.nan)
+    ub = bounds_from_captures(observed, RES, (0, 0), cam[None], max_range_m=1.0)
+    shadow = hidden.copy()
+    shadow[:28] = False                                 # the wall's shadow (beyond it)
+    assert shadow.sum() > 40
+    got = shadow & np.isfinite(ub)
+    assert got.sum() > 0.5 * shadow.sum()
+    # valid bounds up to the bin approximation (ray within half a bin of the cell centre)
+    assert np.all(ub[got] >= truth[got] - 0.002)
+    assert np.mean(ub[got] < 0.06) > 0.9                 # and below the wall top: informative
+    # looking along +x with a 40 deg cone: nothing behind or beside the camera is bounded
+    axis = np.array([[1.0, 0.0, -0.5]])
+    ub_cone = bounds_from_captures(observed, RES, (0, 0), cam[None], max_range_m=1.0,
+                                   camera_axes=axis, fov_half_angle_rad=np.radians(40))
+    d = np.stack(np.meshgrid((np.arange(n) + 0.5) * RES - cam[0],
+                             (np.arange(n) + 0.5) * RES - cam[1], indexing='ij'), -1)
+    side = np.abs(np.degrees(np.arctan2(d[..., 1], d[..., 0]))) > 60
+    assert np.isfinite(ub[side & hidden]).sum() > 3     # the block's shadow, seen all round
+    assert np.isnan(ub_cone[side]).all()
+    assert np.isfinite(ub_cone[got]).mean() > 0.5
+    assert np.all(np.isfinite(ub[np.isfinite(ub_cone)]))  # the cone only removes bounds
 
 
 def test_bounds_reject_unpaired_rays():

