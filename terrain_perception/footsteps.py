@@ -62,7 +62,7 @@ class PlannerConfig:
         0.0, "Shao's A: body advance per gait period [m]; 0 = the robot profile's value",
         0.0, 2.0)
     trot_threshold_m: float = param(
-        0.0065, "Shao's Threshold on |h - ground| + Dev(h) [m] below which a cell counts as "
+        0.02, "Shao's Threshold on |h - ground| + Dev(h) [m] below which a cell counts as "
         'flat (paper 002: 0.02 m for FROG-I)', 0.0, 1.0)
     distance_weight_gain: float = param(
         1.0, "gain on the quadratic term of Shao's omega = gain (x - centre)^2 + A "

@@ -69,8 +69,8 @@ class PatchConfig:
     kappa_max_per_m: float = param(19.7, 'kappa_max: largest allowed max principal curvature '
                                    '[1/m]', 0.0, 1000.0)
     max_residual_m: float = param(0.01, 'd_max: max RMS Euclidean fit residual [m]', 0.0, 1.0)
-    lm_iterations: int = param(6, 'Levenberg-Marquardt iterations after the closed-form start',
-                               0, 100)
+    lm_iterations: int = param(6, 'most Levenberg-Marquardt iterations after the closed-form '
+                               'start (stops early on convergence)', 0, 100)
     neighbour_draws: int = param(3, 'random pixel draws per neighbourhood slot (organized '
                                  'search; draws outside the r-ball are discarded)', 1, 20)
     random_seed: int = param(0, 'seed of the random subsampling (repeatable runs)', 0, 2**31 - 1)
@@ -114,13 +114,23 @@ def median_downsample_2x2(cloud: np.ndarray) -> np.ndarray:
     block over its valid points (NaN where the block has none)."""
     cloud = _check_cloud(cloud)
     h, w = cloud.shape[0] // 2 * 2, cloud.shape[1] // 2 * 2
-    a, b = cloud[0:h:2, 0:w:2], cloud[0:h:2, 1:w:2]
-    c, d = cloud[1:h:2, 0:w:2], cloud[1:h:2, 1:w:2]
+    # One copy into (2, 2, h/2, w/2, 3) makes the four block members contiguous planes, which
+    # makes the element-wise work below ~3x faster than on strided views.
+    X = np.ascontiguousarray(cloud[:h, :w].reshape(h // 2, 2, w // 2, 2, 3)
+                             .transpose(1, 3, 0, 2, 4))
+    a, b, c, d = X[0, 0], X[0, 1], X[1, 0], X[1, 1]
     # All four valid (the common case): median of 4 = (sum - max - min) / 2. NaN propagates
     # through +, maximum and minimum, so blocks with an invalid point come out NaN here.
-    hi = np.maximum(np.maximum(a, b), np.maximum(c, d))
-    lo = np.minimum(np.minimum(a, b), np.minimum(c, d))
-    out = (a + b + c + d - hi - lo) * np.float32(0.5)
+    out = np.add(a, b)
+    out += c
+    out += d
+    hi = np.maximum(a, b)
+    np.maximum(hi, np.maximum(c, d), out=hi)
+    lo = np.minimum(a, b)
+    np.minimum(lo, np.minimum(c, d), out=lo)
+    out -= hi
+    out -= lo
+    out *= np.float32(0.5)
     part = np.isnan(out[..., 2])
     if np.any(part):
         blk = np.stack([a[part], b[part], c[part], d[part]], axis=-1)  # (k, 3, 4)
@@ -215,16 +225,24 @@ class IntegralMoments:
         # Centre on the mean point to keep the second moments well conditioned.
         self.offset = cloud[valid].mean(axis=0, dtype=np.float64) if np.any(valid) \
             else np.zeros(3)
-        p = cloud.astype(np.float64) - self.offset
+        p = cloud.astype(np.float64)
+        p -= self.offset
         p[~valid] = 0.0
         x, y, z = p[..., 0], p[..., 1], p[..., 2]
         # OpenCV's integral is one C pass per image (4 channels max), ~20x numpy's two cumsums.
-        c1 = np.dstack([valid.astype(np.float64), p])
-        c2 = np.dstack([x * x, x * y, x * z, y * y])
-        c3 = np.dstack([y * z, z * z])
-        ch = np.concatenate([cv2.integral(c, sdepth=cv2.CV_64F).reshape(h + 1, w + 1, -1)
-                             for c in (c1, c2, c3)], axis=-1)
-        self.ii = ch
+        c1 = np.empty((h, w, 4))
+        c1[..., 0] = valid
+        c1[..., 1:] = p
+        c2 = np.empty((h, w, 4))
+        np.multiply(x, x, out=c2[..., 0])
+        np.multiply(x, y, out=c2[..., 1])
+        np.multiply(x, z, out=c2[..., 2])
+        np.multiply(y, y, out=c2[..., 3])
+        c3 = np.empty((h, w, 2))
+        np.multiply(y, z, out=c3[..., 0])
+        np.multiply(z, z, out=c3[..., 1])
+        self.ii = [cv2.integral(c, sdepth=cv2.CV_64F).reshape(h + 1, w + 1, -1)
+                   for c in (c1, c2, c3)]
         self.shape = (h, w)
 
     def window_normals(self, rows: np.ndarray, cols: np.ndarray, half: np.ndarray,
@@ -237,8 +255,8 @@ class IntegralMoments:
         r1 = np.clip(rows + half + 1, 0, h)
         c0 = np.clip(cols - half, 0, w)
         c1 = np.clip(cols + half + 1, 0, w)
-        ii = self.ii
-        s = ii[r1, c1] - ii[r0, c1] - ii[r1, c0] + ii[r0, c0]
+        s = np.concatenate([ii[r1, c1] - ii[r0, c1] - ii[r1, c0] + ii[r0, c0]
+                            for ii in self.ii], axis=1)
         n = s[:, 0]
         ns = np.maximum(n, 1.0)
         mx, my, mz = s[:, 1] / ns, s[:, 2] / ns, s[:, 3] / ns
@@ -325,22 +343,25 @@ class ParaboloidFit:
     count: np.ndarray
 
 
-def _skew(v: np.ndarray) -> np.ndarray:
-    z = np.zeros(v.shape[:-1])
-    return np.stack([np.stack([z, -v[..., 2], v[..., 1]], -1),
-                     np.stack([v[..., 2], z, -v[..., 0]], -1),
-                     np.stack([-v[..., 1], v[..., 0], z], -1)], -2)
-
-
 def _expmap(w: np.ndarray) -> np.ndarray:
     """Rodrigues: rotation matrices ``(..., 3, 3)`` of rotation vectors ``(..., 3)``."""
-    th = np.linalg.norm(w, axis=-1)[..., None, None]
-    K = _skew(w)
+    th = np.sqrt((w * w).sum(-1))
     small = th < 1e-8
     ths = np.where(small, 1.0, th)
     a = np.where(small, 1.0, np.sin(ths) / ths)
     b = np.where(small, 0.5, (1.0 - np.cos(ths)) / ths ** 2)
-    return np.eye(3) + a * K + b * (K @ K)
+    x, y, z = w[..., 0], w[..., 1], w[..., 2]
+    R = np.empty(w.shape[:-1] + (3, 3))
+    R[..., 0, 0] = 1.0 - b * (y * y + z * z)
+    R[..., 1, 1] = 1.0 - b * (x * x + z * z)
+    R[..., 2, 2] = 1.0 - b * (x * x + y * y)
+    R[..., 0, 1] = -a * z + b * x * y
+    R[..., 1, 0] = a * z + b * x * y
+    R[..., 0, 2] = a * y + b * x * z
+    R[..., 2, 0] = -a * y + b * x * z
+    R[..., 1, 2] = -a * x + b * y * z
+    R[..., 2, 1] = a * x + b * y * z
+    return R
 
 
 def _rot_z(theta: np.ndarray) -> np.ndarray:
@@ -362,7 +383,8 @@ def fit_paraboloids(points: np.ndarray, mask: np.ndarray, up: np.ndarray,
         points: (P, n, 3) neighbourhood points [m] (padding rows are ignored via ``mask``).
         mask: (P, n) bool, True for real points (each patch needs >= 6).
         up: (3,) or (P, 3) direction the patch normals should point to (e.g. ``-gravity``).
-        iterations: Levenberg-Marquardt iterations after the closed-form start.
+        iterations: at most this many Levenberg-Marquardt iterations after the closed-form start
+            (it stops once no patch's squared residual drops by more than 0.1 % of itself).
 
     Closed-form start: PCA frame at the centroid, linear least squares of the general quadric
     ``z = a x^2 + b xy + c y^2 + d x + e y + f``; its tangent tilt, height and Hessian give the
@@ -431,13 +453,16 @@ def fit_paraboloids(points: np.ndarray, mask: np.ndarray, up: np.ndarray,
     cur = cost(R, h, kx, ky)
     for _ in range(iterations):
         r = _residuals(ql, kx, ky) * W
-        g = np.stack([kx[:, None] * ql[..., 0], ky[:, None] * ql[..., 1],
-                      -np.ones_like(ql[..., 0])], -1)
-        q0 = ql + h[:, None, None] * np.array([0, 0, 1.0])  # R^T (p - c)
+        qx, qy = ql[..., 0], ql[..., 1]
+        qz0 = ql[..., 2] + h[:, None]                    # q0 = R^T (p - c)
+        gx, gy = kx[:, None] * qx, ky[:, None] * qy       # g = d r / d q = (gx, gy, -1)
         J = np.empty(ql.shape[:2] + (6,))
-        J[..., 0] = 0.5 * ql[..., 0] ** 2
-        J[..., 1] = 0.5 * ql[..., 1] ** 2
-        J[..., 2:5] = np.cross(g, q0)  # d r / d omega = g^T [q0]x = (g x q0)^T
+        J[..., 0] = 0.5 * qx * qx
+        J[..., 1] = 0.5 * qy * qy
+        # d r / d omega = g^T [q0]x = (g x q0)^T
+        J[..., 2] = gy * qz0 + qy
+        J[..., 3] = -qx - gx * qz0
+        J[..., 4] = gx * qy - gy * qx
         J[..., 5] = 1.0
         J *= W[..., None]
         Jt = J.transpose(0, 2, 1)
@@ -450,6 +475,9 @@ def fit_paraboloids(points: np.ndarray, mask: np.ndarray, up: np.ndarray,
         kx_new, ky_new, h_new = kx + step[:, 0], ky + step[:, 1], h + step[:, 5]
         new = cost(R_new, h_new, kx_new, ky_new)
         ok = new < cur
+        gain = np.where(ok, cur - new, 0.0)
+        if not np.any(gain > 1e-3 * cur):      # converged everywhere: stop early
+            break
         R = np.where(ok[:, None, None], R_new, R)
         kx, ky, h = np.where(ok, kx_new, kx), np.where(ok, ky_new, ky), np.where(ok, h_new, h)
         cur = np.where(ok, new, cur)
@@ -607,8 +635,9 @@ def find_patches(cloud: np.ndarray, fx: float, fy: float, gravity_cam: np.ndarra
     t1 = clock()
     times['stage1_ms'] = 1e3 * (t1 - t0)
     # Stage II: seeds within R of the fixation point
-    dist = np.linalg.norm(D.astype(np.float64) - fix, axis=2)
-    in_roi = np.isfinite(dist) & (dist <= cfg.roi_radius_m)
+    dd = D - fix.astype(np.float32)
+    with np.errstate(invalid='ignore'):
+        in_roi = np.einsum('ijk,ijk->ij', dd, dd) <= np.float32(cfg.roi_radius_m ** 2)
     rows, cols = np.nonzero(in_roi)
     counts['valid_points'] = int(np.isfinite(D[..., 2]).sum())
     counts['dtfp'] = int(len(rows))
