@@ -10,7 +10,12 @@ Line-of-sight upper bounds (:func:`line_of_sight_bounds`)
     footprint is rasterised through the grid (samples every ``step_cells`` cells) and the bound
     of a cell is the running minimum of the ray heights over all rays that crossed it. The cell
     that holds ``p`` itself is skipped (the ray ends on its surface). Cells never crossed have
-    no bound (NaN).
+    no bound (NaN). Used when the true (camera, point) pairs are known (the benchmark).
+
+Bounds from capture poses only (:func:`bounds_from_captures`)
+    A fused map does not say which camera saw which cell; a viewshed (horizon test along a fan
+    of rays from each capture, observed cells as occluders) recovers the plausible lines of
+    sight. This is what :class:`TerrainFiller` (the node) uses.
 
 Fill-Terrain (:func:`fill_terrain`), Fig. 6, for a missing cell with window ``A`` (w x w around
 it), known mask ``B``, bound window ``A_bar``, weighting matrix ``W`` and ``n`` random library
@@ -34,7 +39,10 @@ one-cell-at-a-time loop, cells are filled in *rounds*: in each round every missi
 ``(known count in its window, rank)`` key is larger than that of every other missing cell in its
 w x w window is filled (the rank is a seeded random permutation that breaks ties). Two cells of
 one round are never inside each other's window, so filling them one after another or all at
-once reads the same heights: the order is the same whichever way it is executed.
+once reads the same heights: the order is the same whichever way it is executed. The order is
+"most known neighbours first" locally (within a window), not globally: a cell with few known
+neighbours far away may be filled before a better-known one elsewhere, which cannot affect
+either result.
 
 Random numbers (identical for the vectorised code and ``test/fill_reference.py``): one
 ``rng.permutation(nx * ny)`` for the ranks, then per round, for the selected cells in increasing
