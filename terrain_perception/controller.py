@@ -595,7 +595,8 @@ class WalkingController:
 
         seg = self._build(t0, dur, 'shift', body_fn, feet_fn)
         if seg is None:
-            self._step_error('body shift leaves the legs\' reach')
+            self._step_error('body shift leaves the legs\' reach: '
+                             + '; '.join(self.last_ik_reasons[:2]))
             return None
         seg.feet_end = feet + seg.roll_end
         seg.body_end = start + delta

@@ -98,3 +98,17 @@ def test_swing_clears_a_box_in_the_path():
     # Blind to the box (no height map) the same swings hit it: the check can fail.
     res_blind, _, _, _ = _box_walk(use_height_map=False)
     assert res_blind.swing_hits > 0
+
+
+def test_littledog_trots_on_flat_ground():
+    # Shao's discontinuous trot: body moves with four feet down, diagonal pairs swing.
+    m = load_robot_model('littledog')
+    client, plane = make_flat_world(DT)
+    robot = spawn_standing(client, m, dt_s=DT)
+    T0 = robot.base_pose()
+    legs, pos = G.straight_footsteps(m, T0, 0.6, gait='trot')
+    res = walk(client, robot, legs, pos, 'trot', dt_s=DT, max_time_s=60.0, ground_id=plane)
+    client.disconnect()
+    assert not res.fell and res.steps_done == len(legs) and res.controller_error == ''
+    assert np.linalg.norm(res.T_end[:2, 3] - (T0[:2, 3] + [0.6, 0.0])) < 0.05
+    assert res.max_tilt_deg < 10.0

@@ -12,7 +12,8 @@
   executed horizon (blind to perception, to separate control from perception).
 
 JSON keys: rtf_littledog, rtf_frog (native camera resolution, cameras on), foot_err_flat_m,
-foot_err_rocks6_m (mean, LittleDog), speed_flat_mps (LittleDog), plus per-case details.
+foot_err_rocks6_m (mean, LittleDog), speed_flat_mps (LittleDog crawl), speed_flat_trot_mps,
+plus per-case details.
 """
 
 from __future__ import annotations
@@ -47,16 +48,16 @@ def _rtf(course, robot: str, scale: float, sim_s: float) -> dict:
     return out
 
 
-def _flat_walk(robot: str, distance_m: float) -> dict:
+def _flat_walk(robot: str, distance_m: float, gait: str = 'walk') -> dict:
     from terrain_perception.sim.walk import make_flat_world, spawn_standing, walk
     m = load_robot_model(robot)
     client, plane = make_flat_world(DT)
     try:
         r = spawn_standing(client, m, dt_s=DT)
         T0 = r.base_pose()
-        legs, pos = G.straight_footsteps(m, T0, distance_m)
+        legs, pos = G.straight_footsteps(m, T0, distance_m, gait=gait)
         wall = time.perf_counter()
-        res = walk(client, r, legs, pos, 'walk', dt_s=DT, max_time_s=40.0 * distance_m / 0.02,
+        res = walk(client, r, legs, pos, gait, dt_s=DT, max_time_s=40.0 * distance_m / 0.02,
                    ground_id=plane)
         wall = time.perf_counter() - wall
     finally:
@@ -64,7 +65,7 @@ def _flat_walk(robot: str, distance_m: float) -> dict:
     fwd = T0[:2, 0] / np.linalg.norm(T0[:2, 0])
     advanced = float((res.T_end[:2, 3] - T0[:2, 3]) @ fwd)
     end = T0[:2, 3] + distance_m * fwd
-    return {'robot': robot, 'distance_m': distance_m, 'fell': res.fell,
+    return {'robot': robot, 'gait': gait, 'distance_m': distance_m, 'fell': res.fell,
             'steps': res.steps_done, 'sim_s': res.sim_time_s,
             'speed_mps': advanced / res.sim_time_s,
             'end_err_m': float(np.linalg.norm(res.T_end[:2, 3] - end)),
@@ -163,15 +164,17 @@ def run(args: argparse.Namespace) -> dict:
         print(f'{r["robot"]:<10} {r["image"]:>9} {r["camera_rate_hz"]:>7.1f} {r["rtf"]:>7.2f} '
               f'{r["rtf_physics_only"]:>11.2f} {r["render_ms_per_pair"]:>8.1f}')
 
-    flat = [_flat_walk('littledog', 0.6 if quick else 2.0)]
+    flat = [_flat_walk('littledog', 0.6 if quick else 2.0),
+            _flat_walk('littledog', 0.6 if quick else 2.0, 'trot')]
     if not quick:
         flat.append(_flat_walk('frog', 2.0))
+        flat.append(_flat_walk('frog', 2.0, 'trot'))
     rocks = _rocks_walk(course, 0.8 if quick else 0.4, 1.6 if quick else 2.4, seed)
     print('\nWalking (crawl, controller at every physics step, ground truth from the simulator)')
     print(f'{"case":<22} {"dist m":>7} {"sim s":>7} {"speed m/s":>10} {"foot err mean":>14} '
           f'{"p95":>7} {"end err":>8} {"fell":>5} {"RTF":>5}')
     for r in flat:
-        print(f'{r["robot"] + " flat":<22} {r["distance_m"]:>7.2f} {r["sim_s"]:>7.1f} '
+        print(f'{r["robot"] + " flat " + r["gait"]:<22} {r["distance_m"]:>7.2f} {r["sim_s"]:>7.1f} '
               f'{r["speed_mps"]:>10.4f} {r["foot_err_mean_m"]:>14.4f} {r["foot_err_p95_m"]:>7.4f}'
               f' {r["end_err_m"]:>8.4f} {str(r["fell"]):>5} {r["rtf_walk"]:>5.2f}')
     r = rocks
@@ -188,6 +191,7 @@ def run(args: argparse.Namespace) -> dict:
         'foot_err_flat_m': flat[0]['foot_err_mean_m'],
         'foot_err_rocks6_m': rocks['foot_err_mean_m'],
         'speed_flat_mps': flat[0]['speed_mps'],
+        'speed_flat_trot_mps': flat[1]['speed_mps'],
         'rtf_rows': rtf_rows,
         'flat': flat,
         'rocks6': rocks,
