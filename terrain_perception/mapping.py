@@ -124,6 +124,9 @@ class MapperConfig:
     fine_estimator: str = param('plane', 'cell height: mean of samples, or the cell-centre '
                                 'value of a per-cell least-squares plane',
                                 choices=('mean', 'plane'))
+    cell_outlier_gate_m: float = param(0.015, 'per capture, samples farther than this [m] from '
+                                       'their cell\'s median are dropped (0 = keep all)',
+                                       0.0, 1.0)
     recenter_distance_m: float = param(0.5, 'move the maps when the robot is this far [m] '
                                        'from the fine map centre', 0.0, 100.0)
     max_capture_poses: int = param(200, 'capture poses kept with the map', 1, 100000)
@@ -437,14 +440,18 @@ class FineHeightMap:
         estimator: 'mean' (mean sample height) or 'plane' (per-cell least-squares plane
             ``z = h + gx dx + gy dy`` evaluated at the cell centre; falls back to the mean when a
             cell's samples do not span a plane).
+        outlier_gate_m: samples of one :meth:`add` farther than this [m] from their cell's
+            median in that batch are dropped (0 = keep all).
     """
 
     _STATS = ('n', 'mean', 'm2', 'min', 'max', 'last', 'sx', 'sy', 'sxx', 'sxy', 'syy', 'sxz',
               'syz')
 
     def __init__(self, resolution_m: float, shape: Tuple[int, int],
-                 origin_xy: Tuple[float, float], estimator: str = 'mean') -> None:
+                 origin_xy: Tuple[float, float], estimator: str = 'mean',
+                 outlier_gate_m: float = 0.0) -> None:
         self.resolution_m = float(resolution_m)
+        self.outlier_gate_m = float(outlier_gate_m)
         self.shape = (int(shape[0]), int(shape[1]))
         self.origin_xy = np.asarray(origin_xy, dtype=np.float64)
         self.estimator = estimator
@@ -471,10 +478,17 @@ class FineHeightMap:
             return 0
         ij, f, z = ij[ok], f[ok], points_map[ok, 2]
         lin = ij[:, 0] * self.shape[1] + ij[:, 1]
-        # one sort, then every per-cell sum in a single reduceat
-        order = np.argsort(lin, kind='stable')
+        # one sort (by cell, then height), then every per-cell sum in a single reduceat
+        order = np.lexsort((z, lin))
         lin = lin[order]
         starts = np.flatnonzero(np.r_[True, lin[1:] != lin[:-1]])
+        if self.outlier_gate_m > 0:
+            # drop samples far from their cell's median in this capture (stereo mismatches)
+            cnt = np.diff(np.r_[starts, len(lin)])
+            med = z[order][starts + cnt // 2]
+            keep = np.abs(z[order] - np.repeat(med, cnt)) <= self.outlier_gate_m
+            order, lin = order[keep], lin[keep]
+            starts = np.flatnonzero(np.r_[True, lin[1:] != lin[:-1]])
         cells = lin[starts]
         nb = np.diff(np.r_[starts, len(lin)]).astype(np.float64)
         z0 = float(np.mean(z))  # reference height keeps the squared sums well conditioned
@@ -602,7 +616,8 @@ class IcpMapper:
         self.counters: collections.Counter = collections.Counter()
         r = config.fine_resolution_m
         n = max(2, int(round(config.fine_size_m / r)))
-        self.fine = FineHeightMap(r, (n, n), (0.0, 0.0), config.fine_estimator)
+        self.fine = FineHeightMap(r, (n, n), (0.0, 0.0), config.fine_estimator,
+                                  config.cell_outlier_gate_m)
         self._fine_anchored = False
         self._model = o3d.geometry.PointCloud()
         self._poses: Deque[Tuple[float, np.ndarray]] = collections.deque(

@@ -335,3 +335,18 @@ def test_roll_pitch_priors(terrain):
     prior = make_T(rpy_to_R(np.radians(3.0), 0, 0)) @ T0
     u = m.update(cloud_at(scene, T0), prior, 0.0, up_camera=(T0 @ T_BC)[:3, :3].T @ [0, 0, 1])
     assert pose_error(u.T_map_base, T0)[1] < 0.05
+
+
+def test_node_yaml_holds_valid_mapper_parameters():
+    import yaml
+    from pathlib import Path
+    from terrain_perception.config import load_config
+    path = Path(__file__).resolve().parents[1] / 'config' / 'icp_mapper.yaml'
+    section = yaml.safe_load(path.read_text())['icp_mapper']['ros__parameters']
+    known = {f.name for f in dataclasses.fields(mp.MapperConfig)} | {
+        'robot', 'map_frame', 'base_frame', 'use_coarse_cloud', 'odom_buffer_size',
+        'odom_max_extrapolation_s', 'odom_max_speed_m_s', 'odom_max_yaw_rate_deg_s',
+        'coarse_publish_every', 'diagnostics_period_s'}
+    assert set(section) <= known, set(section) - known
+    cfg = load_config(mp.MapperConfig, path, 'icp_mapper')  # type and range checked
+    assert cfg.fine_resolution_m == 0.01

@@ -41,9 +41,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('--terrain', default='rocks-6cm', help='course class')
     parser.add_argument('--seed', type=int, default=0, help='course seed')
     parser.add_argument('--robot', default='littledog', help='robot profile')
-    parser.add_argument('--start-x', type=float, default=-0.45,
-                        help='walk start x [m] (the rough section spans x = 1..2 m)')
+    parser.add_argument('--path', default='straight', choices=('straight', 'u-turn', 'loop'),
+                        help='straight: from the flat approach onto and across the rocks; '
+                        'u-turn: 1 m across the rocks, a 0.25 m-radius turn, back; loop: '
+                        'circles of 0.3 m radius inside the rough section')
+    parser.add_argument('--start-x', type=float, default=None,
+                        help='walk start x [m] (the rough section spans x = 1..2 m; default '
+                        '-0.45 straight, 0.75 u-turn, 1.5 loop)')
     parser.add_argument('--distance', type=float, default=2.05, help='walk length [m]')
+    parser.add_argument('--stereo-max-range', type=float, default=1.0,
+                        help='max_range_m of the mapper for stereo clouds [m] (3 cm baseline: '
+                        'depth noise grows with range squared)')
     parser.add_argument('--step', type=float, default=None,
                         help='distance between captures [m] (default 0.05, quick 0.1)')
     parser.add_argument('--speed', type=float, default=0.1, help='walking speed [m/s]')
@@ -61,15 +69,50 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 # ------------------------------------------------------------------------------------------
 # the walk
 # ------------------------------------------------------------------------------------------
-def body_poses(course: GridMap, nominal_feet: np.ndarray, standing_height_m: float,
-               start_x: float, distance: float, step: float) -> np.ndarray:
-    """True ``T_map_base`` ``(K, 4, 4)`` along a weaving path; height, roll and pitch follow a
-    plane through the terrain under the four nominal feet, plus a small gait bob."""
+def path_xy_yaw(path: str, start_x: float, distance: float, step: float):
+    """Sampled path: ``(x, y, heading)`` arrays every ``step`` metres of arc length.
+
+    ``straight``: along +x from ``start_x`` with a gentle +-6 cm weave. ``u-turn``: 1 m along +x
+    at y = -0.25 m from ``start_x``, a 180-degree left turn of radius 0.25 m, and back along -x
+    for the rest of ``distance`` (it stays on a 1 m-wide rough section when it starts just
+    before it)."""
     s = np.arange(0.0, distance + 1e-9, step)
-    x = start_x + s
-    y = 0.06 * np.sin(2 * np.pi * s / 1.2)
-    yaw = np.arctan(0.06 * 2 * np.pi / 1.2 * np.cos(2 * np.pi * s / 1.2)) \
-        + 0.03 * np.sin(2 * np.pi * s / 0.35)
+    if path == 'straight':
+        x = start_x + s
+        y = 0.06 * np.sin(2 * np.pi * s / 1.2)
+        yaw = np.arctan(0.06 * 2 * np.pi / 1.2 * np.cos(2 * np.pi * s / 1.2))
+        return x, y, yaw
+    if path == 'loop':
+        R = 0.3
+        th = s / R
+        return start_x + R * np.sin(th), -R * np.cos(th), th
+    if path != 'u-turn':
+        raise ValueError(f'unknown path {path!r} (straight, u-turn, loop)')
+    R = 0.25
+    arc = np.pi * R
+    leg = min(1.0, distance)
+    x = np.empty_like(s)
+    y = np.empty_like(s)
+    yaw = np.empty_like(s)
+    a = s <= leg
+    x[a], y[a], yaw[a] = start_x + s[a], -R, 0.0
+    b = (s > leg) & (s <= leg + arc)
+    th = (s[b] - leg) / R
+    x[b], y[b], yaw[b] = start_x + leg + R * np.sin(th), -R * np.cos(th), th
+    c = s > leg + arc
+    x[c], y[c], yaw[c] = start_x + leg - (s[c] - leg - arc), R, np.pi
+    return x, y, yaw
+
+
+def body_poses(course: GridMap, nominal_feet: np.ndarray, standing_height_m: float,
+               start_x: float, distance: float, step: float, path: str = 'straight'
+               ) -> np.ndarray:
+    """True ``T_map_base`` ``(K, 4, 4)`` along a path (:func:`path_xy_yaw`) with a small gait
+    yaw wiggle and bob; height, roll and pitch follow a plane through the terrain under the
+    four nominal feet."""
+    s = np.arange(0.0, distance + 1e-9, step)
+    x, y, yaw = path_xy_yaw(path, start_x, distance, step)
+    yaw = yaw + 0.03 * np.sin(2 * np.pi * s / 0.35)
     out = np.empty((len(s), 4, 4))
     feet = np.asarray(nominal_feet)[:, :2]
     for k in range(len(s)):
@@ -284,8 +327,10 @@ def build_sequence(args: argparse.Namespace) -> Dict[str, object]:
                          (course.shape[0] + 2 * pad, course.shape[1] + 2 * pad), fill=0.0)
     cam = scaled_camera(robot.camera, scale)
     T_bc = np.asarray(robot.T_base_camera)
-    T_true = body_poses(course, robot.nominal_feet, robot.standing_height_m, args.start_x,
-                        args.distance, step)
+    start_x = args.start_x if args.start_x is not None else \
+        {'u-turn': 0.75, 'loop': 1.5}.get(args.path, -0.45)
+    T_true = body_poses(course, robot.nominal_feet, robot.standing_height_m, start_x,
+                        args.distance, step, args.path)
     scene = rc.HeightFieldScene(course)
     # same angular sampling as the full-size camera: strides scale with the image
     base = mp.MapperConfig()
@@ -308,7 +353,8 @@ def run(args: argparse.Namespace) -> dict:
     T_true, T_dr, stamps, step = seq['T_true'], seq['T_dr'], seq['stamps'], seq['step']
     config, clouds = seq['config'], seq['clouds']
     walked = float(np.sum(np.linalg.norm(np.diff(T_true[:, :2, 3], axis=0), axis=1)))
-    print(f'walk: {walked:.2f} m on {args.terrain} (seed {args.seed}), {len(T_true)} captures '
+    print(f'walk: {walked:.2f} m ({args.path}) on {args.terrain} (seed {args.seed}), '
+          f'{len(T_true)} captures '
           f'every {step:.2f} m at {args.speed:.2f} m/s ({args.speed / step:.1f} Hz), camera '
           f'{cam.width}x{cam.height} ({args.robot}), dead reckoning: stride error '
           f'{args.stride_error * 100:.0f} %, yaw drift {args.yaw_drift:.1f} deg/m')
@@ -367,13 +413,14 @@ def run(args: argparse.Namespace) -> dict:
             print('stereo-node clouds: NOT MEASURED (terrain_perception.sim.world.render_stereo '
                   'is not available)')
         else:
-            st = run_mapper(config, T_bc, sclouds, T_dr, stamps)
+            st_cfg = dataclasses.replace(config, max_range_m=args.stereo_max_range)
+            st = run_mapper(st_cfg, T_bc, sclouds, T_dr, stamps)
             e_st = pose_errors(st['poses'], T_true)
             rm_st = map_rmse(st['grid'], course)
             rmse_stereo = rm_st['rmse_m']
             results['stereo'] = {'errors': e_st, 'map': rm_st, 'counters': st['counters'],
                                  'icp_ms_median': float(np.median(st['icp_ms']))}
-            print('\nStereo-node clouds')
+            print(f'\nStereo-node clouds (max range {args.stereo_max_range:.2f} m)')
             print(header)
             print(_row('ours: o3d point-to-plane', e_st, st,
                        f'accepted {st["counters"].get("accepted", 0)}/{len(clouds) - 1}'))
