@@ -18,7 +18,7 @@ Time is the session's own simulated clock ``t_s`` (starts at 0).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import List, Optional, Sequence, Tuple
 
 import numpy as np
@@ -61,6 +61,11 @@ class SimSessionConfig:
     far_m: float = param(8.0, 'far clipping distance of the cameras [m]', 0.1, 1000.0)
     shadows: bool = param(True, 'render shadows (TinyRenderer shadow map; about 2x slower)')
     imu_seed: int = param(0, 'seed of the IMU noise and bias', 0, 2**31 - 1)
+    texture_texel_m: float = param(0.0, 'ground texture texel size [m]; 0 = 1.5 x the '
+                                   'camera\'s pixel footprint where its optical axis meets '
+                                   'flat ground when standing (no mipmaps in TinyRenderer: '
+                                   'finer texels alias differently in the two views)',
+                                   0.0, 0.1)
 
 
 @dataclass(frozen=True)
@@ -92,6 +97,16 @@ def scaled_camera(cam: PinholeCamera, scale: float) -> PinholeCamera:
     sx, sy = w / cam.width, h / cam.height
     return PinholeCamera(w, h, cam.fx * sx, cam.fy * sy, (cam.cx + 0.5) * sx - 0.5,
                          (cam.cy + 0.5) * sy - 0.5)
+
+
+def auto_texel_m(model, image_scale: float = 1.0) -> float:
+    """1.5 x the ground footprint [m] of one pixel where the optical axis of the standing
+    robot's camera meets flat ground (its typical viewing distance)."""
+    T = model.T_base_camera
+    height = model.standing_height_m + T[2, 3]
+    down = -T[2, 2]                      # optical axis z component, pointing down
+    distance = height / down if down > 0.05 else 20.0 * height
+    return float(1.5 * distance / (model.camera.fx * image_scale))
 
 
 def flat_course(length_m: float = 3.0, width_m: float = 1.0, resolution_m: float = 0.02
@@ -143,6 +158,8 @@ class SimSession:
         c = self.client
         c.setGravity(0.0, 0.0, -9.81)
         c.setTimeStep(self.dt_s)
+        texel = cfg.texture_texel_m or auto_texel_m(self.model, cfg.image_scale)
+        world_cfg = replace(world_cfg, texture_tile_m=texel * world_cfg.texture_size_px)
         self.world = SimWorld(c, course, world_cfg, texture_seed=cfg.course_seed)
         ground = float(self.world.height_at(np.array([cfg.start_x_m, cfg.start_y_m])))
         self.robot = SimRobot.load(

@@ -43,8 +43,11 @@ class WorldConfig:
 
     texture_size_px: int = param(1024, 'edge of the square, tiling ground texture [px]',
                                  64, 8192)
-    texture_tile_m: float = param(0.5, 'ground length one texture tile covers [m]; '
-                                  'tile / size is the texel size', 0.01, 100.0)
+    texture_tile_m: float = param(2.0, 'ground length one texture tile covers [m]; tile / '
+                                  'size is the texel size (2 mm: about a pixel footprint of '
+                                  'both robots\' cameras at mid range; TinyRenderer has no '
+                                  'mipmaps, so finer texels alias differently in the two '
+                                  'views)', 0.01, 100.0)
     ground_margin_m: float = param(4.0, 'textured flat ground drawn around the course [m]',
                                    0.0, 100.0)
     ground_cell_m: float = param(0.1, 'triangle size of flat ground [m]: flat, so coarse (the '
