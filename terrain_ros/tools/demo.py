@@ -294,6 +294,18 @@ def stop_process(proc: subprocess.Popen, sig=signal.SIGINT, wait_s: float = 20.0
 # the monitor: an in-process node that watches the run and keeps what the report needs
 
 
+def fast_executor(context):
+    """rclpy's EventsExecutor where available (Jazzy: rclpy.experimental), else the
+    single-threaded one. A subscriber of many topics keeps up far better with it: the classic
+    executor rebuilds its wait set on every message."""
+    try:
+        from rclpy.experimental import EventsExecutor
+        return EventsExecutor(context=context)
+    except (ImportError, TypeError):
+        from rclpy.executors import SingleThreadedExecutor
+        return SingleThreadedExecutor(context=context)
+
+
 def _cdr_stamp(data: bytes) -> tuple:
     """(sec, nanosec) of a serialized message that starts with a std_msgs/Header."""
     return struct.unpack_from('<iI', data, 4)
@@ -306,7 +318,6 @@ class Monitor:
                  domain_id: Optional[int] = None, blind: bool = False) -> None:
         import rclpy
         from rclpy.context import Context
-        from rclpy.executors import SingleThreadedExecutor
         from rclpy.signals import SignalHandlerOptions
         self.model = model
         self.finish_x = finish_x
@@ -319,7 +330,7 @@ class Monitor:
                    signal_handler_options=SignalHandlerOptions.NO)
         self.node = rclpy.create_node('terrain_demo_monitor', context=self.ctx,
                                       start_parameter_services=False)
-        self.executor = SingleThreadedExecutor(context=self.ctx)
+        self.executor = fast_executor(self.ctx)
         self.executor.add_node(self.node)
         self.lock = threading.Lock()
         self.sim_t: Optional[float] = None
@@ -353,7 +364,9 @@ class Monitor:
         from terrain_msgs.msg import FootstepPlan, TerrainGrid
         from terrain_ros.qos import LATCHED_QOS, RELIABLE_QOS, SENSOR_QOS
         n = self.node
-        sub = n.create_subscription
+
+        def sub(cls, topic, cb, qos, raw=False):
+            return n.create_subscription(cls, topic, self._safe(cb), qos, raw=raw)
         sub(Clock, '/clock', self._on_clock, RELIABLE_QOS)
         sub(Odometry, '/ground_truth/odom', self._on_gt, RELIABLE_QOS)
         sub(TerrainGrid, '/ground_truth/terrain', lambda m: self._keep('terrain_msg', m,
@@ -376,25 +389,32 @@ class Monitor:
         sub(PointCloud2, '/stereo/points', lambda b: self._count('/stereo/points'),
             SENSOR_QOS, raw=True)
         self.goal_pub = n.create_publisher(PoseStamped, '/goal_pose', RELIABLE_QOS)
-        self._next_goal = 0.0
+        if self.publish_goal:
+            n.create_timer(2.0, self._safe(self._publish_goal))
+
+    def _safe(self, fn):
+        """A callback that counts a malformed message (ValueError) instead of raising."""
+        def wrapped(*a):
+            try:
+                fn(*a)
+            except ValueError as exc:
+                key = 'malformed (ignored by the monitor)'
+                self._count(key)
+                if self.counts[key] == 1:
+                    print(f'[{PROG}] monitor: ignoring a malformed message: {exc}', flush=True)
+        return wrapped
 
     def _spin(self) -> None:
         while self._running and self.ctx.ok():
             try:
-                self.executor.spin_once(timeout_sec=0.05)
-            except ValueError as exc:   # a malformed message: counted, the run goes on
-                self._count('malformed (ignored by the monitor)')
-                if self.counts['malformed (ignored by the monitor)'] == 1:
-                    print(f'[{PROG}] monitor: ignoring a malformed message: {exc}', flush=True)
+                self.executor.spin_once(timeout_sec=0.1)
             except Exception as exc:  # keep watching: one bad callback must not end the run
-                print(f'[{PROG}] monitor callback failed: {exc}', flush=True)
-            if self.publish_goal and time.monotonic() >= self._next_goal:
-                self._publish_goal()
+                if self._running and self.ctx.ok():
+                    print(f'[{PROG}] monitor callback failed: {exc}', flush=True)
 
     def _publish_goal(self) -> None:
         from geometry_msgs.msg import PoseStamped
         from terrain_ros.conversions import sec_to_stamp
-        self._next_goal = time.monotonic() + 5.0
         if self.goal_pub.get_subscription_count() == 0 or self.sim_t is None:
             return
         g = PoseStamped()
