@@ -106,8 +106,8 @@ class StereoConfig:
         'marks its pixels as mismatches [px]', 1, 10000)
     area_filling: bool = param(True, 'eight-relation row area filling (Shao II-B-2)')
     fill_passes: int = param(1, 'repetitions of the area-filling step (paper: 1)', 1, 64)
-    max_depth_m: float = param(6.0, 'points farther than this along z are dropped [m]',
-                               0.01, 1000.0)
+    max_depth_m: float = param(3.0, 'points farther than this along z are dropped [m] '
+                               '(paper 002 senses within 2 m)', 0.01, 1000.0)
     coarse_step_px: int = param(8, 'pixel stride of the coarse cloud in both directions [px]',
                                 1, 256)
     min_contrast: float = param(2.0, 'images whose grey-level standard deviation is below '
