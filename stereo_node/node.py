@@ -130,7 +130,6 @@ class StereoNode(Node):
         self._pipeline: Optional[StereoPipeline] = None
         self._pending: Optional[Tuple[Image, Image]] = None
         self._request_stamp: Optional[float] = None
-        self._last_processed_stamp: Optional[float] = None
         self.frames_processed = 0
 
         self.pub_disparity = self.create_publisher(DisparityImage, '/stereo/disparity', SENSOR_QOS)
@@ -147,7 +146,8 @@ class StereoNode(Node):
         self.create_subscription(Header, '/capture_request', self._on_capture_request,
                                  RELIABLE_QOS)
         self._timer = self.create_timer(1.0 / self.node_cfg.max_rate_hz, self._on_timer)
-        self.create_timer(self.node_cfg.diagnostics_period_s, self.counters.publish)
+        self._diag_timer = self.create_timer(self.node_cfg.diagnostics_period_s,
+                                             self.counters.publish)
 
     # ------------------------------------------------------------------ parameters
 
@@ -168,6 +168,10 @@ class StereoNode(Node):
         if cfg.max_rate_hz != old.max_rate_hz:
             self.destroy_timer(self._timer)
             self._timer = self.create_timer(1.0 / cfg.max_rate_hz, self._on_timer)
+        if cfg.diagnostics_period_s != old.diagnostics_period_s:
+            self.destroy_timer(self._diag_timer)
+            self._diag_timer = self.create_timer(cfg.diagnostics_period_s,
+                                                 self.counters.publish)
 
     def _on_stereo_cfg(self, cfg: StereoConfig) -> None:
         self.stereo_cfg = cfg
@@ -292,7 +296,6 @@ class StereoNode(Node):
         if self.node_cfg.estimate_ground_plane:
             self._publish_plane(frame.points, frame_id, stamp)
         self.frames_processed += 1
-        self._last_processed_stamp = stamp_to_sec(stamp)
         return True
 
     def _publish_plane(self, points: np.ndarray, frame_id: str, stamp) -> None:

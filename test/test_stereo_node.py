@@ -260,4 +260,6 @@ def test_runtime_parameters_are_checked_and_applied(ros_context):
     assert node.set_parameters([Parameter('ground_plane.inlier_threshold_m',
                                           value=0.01)])[0].successful
     assert node.plane_cfg.inlier_threshold_m == 0.01
+    assert node.set_parameters([Parameter('max_rate_hz', value=5.0)])[0].successful
+    assert node._timer.timer_period_ns == 200_000_000
     node.destroy_node()
