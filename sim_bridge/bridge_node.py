@@ -161,10 +161,12 @@ class SimBridgeNode(Node):
                     raise ValueError(f'point {k} has {len(p.positions)} positions for {n} '
                                      'joints')
             pos = np.array([list(p.positions) for p in msg.points], dtype=np.float64)
-            has_vel = all(len(p.velocities) == n for p in msg.points) and n > 0 \
-                and any(len(p.velocities) for p in msg.points)
+            n_vel = {len(p.velocities) for p in msg.points}
+            if n_vel not in ({0}, {n}):
+                raise ValueError(f'velocities must be given for all {n} joints of every point '
+                                 f'or for none (got lengths {sorted(n_vel)})')
             vel = (np.array([list(p.velocities) for p in msg.points], dtype=np.float64)
-                   if has_vel else None)
+                   if n_vel == {n} and n > 0 else None)
             times = [p.time_from_start.sec + 1e-9 * p.time_from_start.nanosec
                      for p in msg.points]
             start = stamp_to_sec(msg.header.stamp)

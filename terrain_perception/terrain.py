@@ -189,12 +189,14 @@ def _pose_vertices(verts: np.ndarray, pos, quat) -> np.ndarray:
 # ---------------------------------------------------------------------------------------------
 # Kolter's rock piles
 # ---------------------------------------------------------------------------------------------
-_LAST_DROP: Dict[str, float] = {}   # diagnostics of the last drop (steps, final speed)
-
-
 def _drop_bodies(bodies: List[np.ndarray], size_xy: Tuple[float, float], cfg: KolterConfig,
-                 rng: np.random.Generator) -> List[np.ndarray]:
-    """Drop convex bodies into a walled ``size_xy`` box at the origin; world vertices at rest."""
+                 rng: np.random.Generator) -> Tuple[List[np.ndarray], Dict[str, float]]:
+    """Drop convex bodies into a walled ``size_xy`` box at the origin.
+
+    Returns:
+        (world vertices of every body at rest, ``{'settle_time_s', 'max_speed_mps'}``: the
+        simulated time the drop took and the fastest body's speed at the end).
+    """
     import pybullet
     from pybullet_utils.bullet_client import BulletClient
 
@@ -245,19 +247,19 @@ def _drop_bodies(bodies: List[np.ndarray], size_xy: Tuple[float, float], cfg: Ko
             ids.append(body)
         n_steps = int(np.ceil(cfg.max_settle_time_s / cfg.time_step_s))
         check_every = max(1, int(round(0.1 / cfg.time_step_s)))
+        speed, step = float('inf'), 0
         for step in range(1, n_steps + 1):
             client.stepSimulation()
-            if step % check_every == 0:
+            if step % check_every == 0 or step == n_steps:
                 speed = max(np.linalg.norm(client.getBaseVelocity(b)[0]) for b in ids)
                 if speed < cfg.rest_speed_mps:
                     break
-        self_check = {'steps': step, 'max_speed_mps': speed}
-        _LAST_DROP.update(self_check)
+        info = {'settle_time_s': step * cfg.time_step_s, 'max_speed_mps': float(speed)}
         out = []
         for body, verts in zip(ids, bodies):
             pos, quat = client.getBasePositionAndOrientation(body)
             out.append(_pose_vertices(verts, pos, quat))
-        return out
+        return out, info
     finally:
         client.disconnect()
 
@@ -276,8 +278,12 @@ def _convolve_same(height: np.ndarray, kernel: np.ndarray) -> np.ndarray:
 
 
 def kolter_heights(size_xy: Tuple[float, float], seed: int, height_range_m: float,
-                   cfg: KolterConfig = KolterConfig()) -> Tuple[np.ndarray, float]:
+                   cfg: KolterConfig = KolterConfig(), info: Optional[dict] = None
+                   ) -> Tuple[np.ndarray, float]:
     """Kolter's rock pile over ``[0, lx] x [0, ly]``, floor at 0, max height = range.
+
+    Args:
+        info: if given, receives the drop's ``settle_time_s`` and final ``max_speed_mps``.
 
     Returns:
         (heights ``(nx, ny)`` float64 [m] at ``cfg.sample_resolution_m``, that resolution).
@@ -291,7 +297,9 @@ def kolter_heights(size_xy: Tuple[float, float], seed: int, height_range_m: floa
     n_bodies = max(1, int(round(cfg.bodies_per_m2 * lx * ly)))
     bodies = [random_convex_body(rng, cfg.points_per_body, cfg.body_scale_m, cfg.min_axis_ratio)
               for _ in range(n_bodies)]
-    resting = _drop_bodies(bodies, (lx, ly), cfg, rng)
+    resting, drop = _drop_bodies(bodies, (lx, ly), cfg, rng)
+    if info is not None:
+        info.update(drop)
     res = cfg.sample_resolution_m
     shape = (max(1, int(round(lx / res))), max(1, int(round(ly / res))))
     h = np.zeros(shape)
@@ -420,8 +428,9 @@ def make_course(cls_name: str, seed: int, resolution_m: float = 0.005,
     if not np.isfinite(resolution_m) or resolution_m <= 0:
         raise ValueError(f'course resolution must be positive, got {resolution_m} m')
     rough_xy = (cfg.rough_length_m, cfg.width_m)
+    drop: dict = {}
     if cfg.generator == 'kolter':
-        fine, fine_res = kolter_heights(rough_xy, seed, cfg.max_height_m, kolter)
+        fine, fine_res = kolter_heights(rough_xy, seed, cfg.max_height_m, kolter, drop)
     else:
         fine, fine_res = stones_heights(rough_xy, seed, cfg.max_height_m, stones)
     rough = resample(fine, fine_res, rough_xy, resolution_m)
@@ -443,6 +452,8 @@ def make_course(cls_name: str, seed: int, resolution_m: float = 0.005,
         'max_height_m': float(cfg.max_height_m),
         'course_config': dataclasses.asdict(cfg),
     }
+    if drop:
+        meta['drop'] = drop
     return GridMap(resolution_m, origin, (nx, ny), {ELEVATION: elev}, metadata=meta)
 
 
