@@ -217,8 +217,7 @@ class Graph:
     probe on the same domain."""
 
     def __init__(self, tmp: Path) -> None:
-        from terrain_ros.tools.demo import (LoggedLauncher, Monitor, course_info, preflight,
-                                            start_recorder)
+        from terrain_ros.tools.demo import LoggedLauncher, Monitor, course_info, preflight
         from terrain_ros.tools.launch import load_launch_file
         self.tmp = tmp
         self.logs = tmp / 'logs'
@@ -375,7 +374,6 @@ def test_every_documented_topic_with_type_and_rate(graph):
 
 @pytest.mark.timeout(400)
 def test_content_after_short_walk(graph):
-    from terrain_ros.conversions import msg_to_grid
     from terrain_ros.report import (fall_mask, interp_poses, map_rmse, observed_mask,
                                     true_cost_grid)
     from terrain_ros.tools.demo import fill_cost_config
@@ -657,7 +655,6 @@ def test_replay_rebuilds_the_same_map(graph, tmp_path):
     s = json.loads((run_dir / 'summary.json').read_text())
     assert s['map_rmse_observed_m'] is not None, (s['missing'], out[-2000:])
     # Compare the replayed map (rebuilt by stereo + ICP from the same images) cell by cell.
-    from terrain_ros.report import map_rmse
     rep = _last_map_from_run(run_dir)
     assert rep is not None, 'the replay produced no /map/fine'
     both_obs = _overlap(rec_map, rep)

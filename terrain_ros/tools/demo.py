@@ -730,7 +730,8 @@ def _start_player(args, log_dir: Path, env) -> subprocess.Popen:
 REPLAY_TOPICS = (
     '/clock', '/stereo/left/image_rect', '/stereo/right/image_rect',
     '/stereo/left/camera_info', '/stereo/right/camera_info', '/imu/data', '/joint_states',
-    '/odom/dead_reckoning', '/capture_request', '/ground_truth/odom', '/ground_truth/terrain', '/goal_pose',
+    '/odom/dead_reckoning', '/capture_request', '/ground_truth/odom', '/ground_truth/terrain',
+    '/goal_pose',
 )
 
 
