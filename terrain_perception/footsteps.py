@@ -27,7 +27,7 @@ points [m].
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import List, Optional, Tuple
 
 import numpy as np
@@ -102,6 +102,8 @@ class PlannerConfig:
                                      1, 64)
     max_turn_rad: float = param(0.1, 'largest heading change towards the goal per plan [rad]',
                                 0.0, 3.2)
+    recovery: bool = param(True, 'when stuck, retry with other legs first, short/backward '
+                           're-placing steps and half the margin (named in the status)')
     goal_tolerance_m: float = param(0.03, 'body within this distance of the goal = reached [m]',
                                     0.0, 10.0)
     selection: str = param('cost', "foothold choice: 'cost' (this planner), or the benchmark "
@@ -550,9 +552,36 @@ class FootstepPlanner:
             if keep.ok:
                 keep.status_text += ' (turn towards the goal postponed)'
                 plan, yaw = keep, yaw_now
+        if plan.status == STATUS_NO_FOOTHOLD and self.cfg.recovery:
+            plan = self._recover(plan, feet, body_xy, yaw_now, remaining, first_leg)
+            yaw = yaw_now if plan.ok else yaw
         plan.initial_feet = feet.copy()
         plan.yaw = yaw
         return plan
+
+    def _recover(self, failed_plan, feet, body_xy, yaw, remaining, first_leg) -> FootstepPlan:
+        """A stance with no feasible continuation (a re-estimated map can remove the footholds
+        the previous plan counted on): retry with, in turn, the other legs first, short or
+        backward re-placing steps allowed, and half the stability margin, plus a deeper crouch.
+        The first that plans is returned with the relaxation named in its status."""
+        base = self.cfg
+        tries = [('another leg first', {}, leg) for leg in CRAWL_ORDER if leg != first_leg]
+        tries += [('re-placing a foot up to 3 cm back allowed', {'min_step_m': -0.03},
+                   first_leg),
+                  ('half stability margin, deeper crouch',
+                   {'stability_margin_m': 0.5 * base.stability_margin_m,
+                    'min_crouch': max(0.3, base.min_crouch - 0.15), 'min_step_m': -0.03},
+                   first_leg)]
+        try:
+            for what, change, leg in tries:
+                self.cfg = replace(base, horizon_steps=min(base.horizon_steps, 4), **change)
+                plan = self._plan_heading(feet, body_xy, yaw, remaining, leg)
+                if plan.ok:
+                    plan.status_text = f'recovery ({what}): ' + plan.status_text
+                    return plan
+        finally:
+            self.cfg = base
+        return failed_plan
 
     def _plan_heading(self, feet, body_xy, yaw, remaining, first_leg) -> FootstepPlan:
         """Gait selection then trot or crawl search, walking along heading ``yaw``."""
@@ -661,6 +690,8 @@ class FootstepPlanner:
         xy = self._to_map(u, v)
         ij, inside = self._cells(xy)
         ok = inside & self.allowed[ij[:, 0], ij[:, 1]]
+        # A step back onto the foot's own cell is no step.
+        ok &= np.hypot(*(xy - state.feet[leg, :2]).T) >= 0.75 * g.resolution_m
         if not np.any(ok):
             return None, 'no observed, finite-cost cell in its search area'
         xy, u, v, ij = xy[ok], u[ok], v[ok], ij[ok]
@@ -740,6 +771,7 @@ class FootstepPlanner:
         beam = [root]
         wL0 = 0.0
         last_fail = ''
+        fallback = None
         for s in range(cfg.horizon_steps):
             leg, next_leg = legs[s], legs[s + 1]
             phase = s % 4
@@ -769,21 +801,30 @@ class FootstepPlanner:
                 nf[leg] = p
                 # Look one swing ahead: the next leg needs a stable, reachable body pose and at
                 # least one foothold from it, or this partial plan is a dead end.
+                cog, _, height = st.swing
+                step = Footstep(leg, p.copy(), c, s, pi, cog.copy(), height)
+                if s == 0 and fallback is None:
+                    fallback = (step, nf)      # the best single first step, checked in itself
                 nxt = self._swing_pose(nf, next_leg, yaw, A, remaining)
                 if nxt[0] is None:
                     last_fail = f'after {LEG_NAMES[leg]} steps, {nxt[1]}'
                     continue
-                cog, _, height = st.swing
-                ns = _State(nf, total, st.steps + [Footstep(leg, p.copy(), c, s, pi,
-                                                            cog.copy(), height)],
+                ns = _State(nf, total, st.steps + [step],
                             nf.copy() if n_phase == 0 else st.period_feet)
                 ns.swing = nxt
                 ns.cands, why = self._candidates(ns, next_leg, ns.period_feet, n_wL0, A, nxt[1])
                 if ns.cands is None:
-                    last_fail = f'after {LEG_NAMES[leg]} steps, leg {LEG_NAMES[next_leg]} has {why}'
+                    last_fail = (f'after {LEG_NAMES[leg]} steps, leg {LEG_NAMES[next_leg]} '
+                                 f'has {why}')
                     continue
                 new_beam.append(ns)
             if not new_beam:
+                if s == 0 and fallback is not None:
+                    # Every first step leaves the next leg stuck in this crawl order; take the
+                    # best one (it is safe, stable and in reach) and let the next plan, which
+                    # may start with another leg, continue.
+                    return self._finish([fallback[0]], fallback[1], yaw, GAIT_WALK, A,
+                                        f'1 step planned; no continuation found: {last_fail}')
                 if s == 0:
                     return failed(STATUS_NO_FOOTHOLD, 'the goal cannot be reached from here, no '
                                   f'feasible first step: {last_fail}')

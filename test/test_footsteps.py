@@ -1,7 +1,5 @@
 """Receding-horizon footstep planner and Shao's gait selection (papers 000 and 002)."""
 
-import dataclasses
-
 import numpy as np
 import pytest
 

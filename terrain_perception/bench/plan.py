@@ -11,8 +11,8 @@ paper's 10 cm patch radius, since the robot's patches are 5x smaller).
 
 Planner (papers 000 / 002): the robot walks each course from the flat approach across the rough
 section; at every replan the planner gets a 1.5 m x 1.5 m, 1 cm map around the robot (ground
-truth + 1 mm noise per cell, cost from ``features.cost_map``), plans a 4-step horizon and the first gait
-period is executed. The same walk is done with the greedy nearest-nominal baseline (search-area
+truth + 1 mm noise per cell, cost from ``features.cost_map``), plans a 4-step horizon and the
+first gait period is executed. The same walk is done with the greedy nearest-nominal baseline (search-area
 centre, cost ignored) and with random feasible footholds. Footholds are scored on the clean
 ground truth: the true (Kolter) cost at the foothold, and "unsafe" when the true terrain under
 the foot is an edge / crack / knob (heights deviate from their local plane by more than half a foot
@@ -95,8 +95,8 @@ def bench_patches(courses, robot, cfg: PatchConfig, frames: int, seed: int = 0):
             x = x0 - 0.25 + (x1 - x0) * (k + 0.5) / frames
             yaw = rng.uniform(-0.3, 0.3)
             y = rng.uniform(-0.2, 0.2)
-            T_base = make_T(np.array([[np.cos(yaw), -np.sin(yaw), 0], [np.sin(yaw), np.cos(yaw), 0],
-                                      [0, 0, 1]]),
+            c, s_ = np.cos(yaw), np.sin(yaw)
+            T_base = make_T(np.array([[c, -s_, 0], [s_, c, 0], [0, 0, 1]]),
                             [x, y, robot.standing_height_m + 0.03])
             T_cam = T_base @ robot.T_base_camera
             depth = scene.depth_image(cam, T_cam)
