@@ -47,6 +47,13 @@ from terrain_perception.stereo import (StereoConfig, StereoMatcher, StereoPipeli
                                        postprocess, to_gray)
 from terrain_perception.transforms import make_T, transform_points
 
+#: Default rays per pixel side of the renderers (``--supersample``). TinyRenderer samples the
+#: ground texture without mip-mapping; rendering at 2x and averaging is what a lens and a pixel
+#: do. The simulator sizes its texels to the camera (``sim.session.auto_texel_m``), which
+#: removes most of the aliasing at 1x, as sim_bridge renders (``--supersample 1``).
+SUPERSAMPLE = 2
+
+
 # ------------------------------------------------------------------------------ scenes
 
 
@@ -333,17 +340,19 @@ QUICK_VIEWS = {('littledog', 'rocks-12cm'), ('littledog', 'stones-15cm'),
                ('frog', 'stones-15cm'), ('frog', 'rocks-12cm')}
 
 
-def run_simulated(quick: bool, renderer: str = 'raycast',
-                  views: int = 3) -> Tuple[List[SceneResult], tuple]:
+def run_simulated(quick: bool, renderer: str = 'raycast', views: int = 3,
+                  supersample: int = SUPERSAMPLE) -> Tuple[List[SceneResult], tuple]:
     """Render and score every (robot, course, view); seeds 100, 101, ... (the defaults were
-    chosen on seeds 1-8)."""
+    chosen on seeds 1-8). The simulator's ground texel follows its per-robot rule."""
     from terrain_perception.robot_model import load_robot_model
+    from terrain_perception.sim.session import auto_texel_m
     results: List[SceneResult] = []
     timing_pair = None
-    print(f'rendering with the {renderer} renderer ({SUPERSAMPLE}x supersampled)')
+    print(f'rendering with the {renderer} renderer ({supersample}x supersampled)')
     for robot, (courses, lead_m) in ROBOT_VIEWS.items():
         rm = load_robot_model(robot)
         stereo = rm.stereo
+        texel = auto_texel_m(rm)
         for course in courses:
             if quick and (robot, course) not in QUICK_VIEWS:
                 continue
@@ -355,7 +364,8 @@ def run_simulated(quick: bool, renderer: str = 'raycast',
                 T = _body_pose(rng, x0, rm.standing_height_m) @ rm.T_base_camera
                 nd = robot_num_disparities(stereo, T)
                 cfg = StereoConfig(num_disparities=nd)
-                left, right, depth = render_pair(renderer, course_grid, grid, stereo, T, seed)
+                left, right, depth = render_pair(renderer, course_grid, grid, stereo, T, seed,
+                                                 supersample, texel)
                 if timing_pair is None and robot == 'frog':
                     timing_pair = (left, right, stereo)
                 gt = stereo.depth_to_disparity(depth)
@@ -380,41 +390,43 @@ def run_simulated(quick: bool, renderer: str = 'raycast',
     return results, timing_pair
 
 
-#: Rays per pixel side of the pybullet renderer. TinyRenderer samples the ground texture
-#: without mip-mapping, so at FROG-I ranges (2-6 mm pixel footprint on 0.5 mm texels) each view
-#: aliases differently and block matching fails (bad2 of raw StereoBM 0.52 at 1x, 0.13 at 2x on
-#: one stones-15cm view); rendering at 2x and averaging is what a lens and pixel do.
-SUPERSAMPLE = 2
-
-
 def render_pair(renderer: str, course: GridMap, padded: GridMap, stereo: StereoCamera,
-                T: np.ndarray, seed: int):
+                T: np.ndarray, seed: int, supersample: int = SUPERSAMPLE,
+                texel_m: Optional[float] = None):
     """``(left, right, depth)`` grey uint8 images and left z-depth [m] of the course seen from
     the left optical frame ``T``: ``'pybullet'`` = the simulator (``terrain_perception.sim.
     world``: textured heightfield + floor, TinyRenderer), ``'raycast'`` = the ray-cast
     renderer of this module over ``padded`` (the course on a flat floor). Both render at
-    :data:`SUPERSAMPLE` x the resolution and average down (anti-aliasing)."""
+    ``supersample`` x the resolution and average down (anti-aliasing). ``texel_m``: the
+    simulator's ground texel [m] (default: its WorldConfig)."""
     if renderer == 'raycast':
-        return render_pair_raycast(padded, stereo, T, seed=seed)
+        return render_pair_raycast(padded, stereo, T, seed=seed, supersample=supersample)
     if renderer == 'pybullet':
         import pybullet
         from pybullet_utils.bullet_client import BulletClient
-        from terrain_perception.sim.world import SimWorld, render_camera, render_stereo
-        cam, s = stereo.left, SUPERSAMPLE
+        from terrain_perception.sim.world import (SimWorld, WorldConfig, render_camera,
+                                                  render_stereo)
+        cam, s = stereo.left, int(supersample)
+        world_cfg = WorldConfig()
+        if texel_m is not None:
+            world_cfg = replace(world_cfg, texture_tile_m=texel_m * world_cfg.texture_size_px)
         hi = StereoCamera(PinholeCamera(cam.width * s, cam.height * s, cam.fx * s, cam.fy * s,
                                         (cam.cx + 0.5) * s - 0.5, (cam.cy + 0.5) * s - 0.5),
                           stereo.baseline_m)
         client = BulletClient(connection_mode=pybullet.DIRECT)
         try:
-            SimWorld(client, course, texture_seed=seed)
+            SimWorld(client, course, world_cfg, texture_seed=seed)
             left, right, _ = render_stereo(client, T, hi)
             # The exact depth of each native pixel's centre ray.
             _, depth = render_camera(client, T, cam, 0.05, 10.0)
         finally:
             client.disconnect()
-        size = (cam.width, cam.height)
-        return (cv2.resize(to_gray(left, 'rgb'), size, interpolation=cv2.INTER_AREA),
-                cv2.resize(to_gray(right, 'rgb'), size, interpolation=cv2.INTER_AREA), depth)
+        left, right = to_gray(left, 'rgb'), to_gray(right, 'rgb')
+        if s > 1:
+            size = (cam.width, cam.height)
+            left = cv2.resize(left, size, interpolation=cv2.INTER_AREA)
+            right = cv2.resize(right, size, interpolation=cv2.INTER_AREA)
+        return left, right, depth
     raise ValueError(f'unknown renderer {renderer!r}')
 
 
@@ -576,6 +588,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help='write the post-processed disparity (NPY) of --left/--right')
     parser.add_argument('--renderer', choices=('auto', 'raycast', 'pybullet'), default='auto',
                         help='simulated set: pybullet (sim world) or the ray-cast renderer')
+    parser.add_argument('--supersample', type=int, default=SUPERSAMPLE,
+                        help='simulated set: rays per pixel side (1 = as sim_bridge renders)')
     parser.add_argument('--views', type=int, default=3,
                         help='simulated set: views (course seeds) per robot and course')
 
@@ -593,7 +607,7 @@ def run(args: argparse.Namespace) -> dict:
     renderer = getattr(args, 'renderer', 'auto')
     if renderer == 'auto':
         renderer = default_renderer()
-    results, timing_pair = run_simulated(args.quick, renderer, args.views)
+    results, timing_pair = run_simulated(args.quick, renderer, args.views, args.supersample)
 
     print(f'\nSimulated set: {len(results)} pairs ({", ".join(sorted({r.robot for r in results}))}'
           f'; courses {", ".join(sorted({r.course for r in results}))}), bad2 = share of '
