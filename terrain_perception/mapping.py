@@ -93,7 +93,7 @@ class MapperConfig:
                                   'the median RMSE of recent accepted ones (0 = off)', 0.0, 100.0)
     rmse_floor_m: float = param(0.0015, 'the relative RMSE test never rejects below this [m]',
                                 0.0, 1.0)
-    max_correction_floor_m: float = param(0.02, 'correction [m] always allowed', 0.0, 10.0)
+    max_correction_floor_m: float = param(0.01, 'correction [m] always allowed', 0.0, 10.0)
     max_correction_per_m: float = param(0.15, 'extra correction [m] allowed per metre walked '
                                         'since the last accepted capture', 0.0, 10.0)
     max_rotation_floor_deg: float = param(2.0, 'rotation correction [deg] always allowed',

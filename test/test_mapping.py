@@ -91,7 +91,8 @@ def pose_error(T_est, T_true):
 
 def test_icp_recovers_a_known_6dof_offset(terrain):
     _, scene = terrain
-    m = first_mapper(scene)
+    # the offset is larger than 5 cm of walking could drift: open the guard, test the solver
+    m = first_mapper(scene, dataclasses.replace(CONFIG, max_correction_floor_m=0.05))
     offset = make_T(rpy_to_R(*np.radians([0.5, -0.4, 0.8])), [0.015, -0.01, 0.005])
     prior = offset @ T1  # dead reckoning wrong by 1.9 cm and ~1 deg in all six axes
     e_prior = pose_error(prior, T1)
