@@ -210,7 +210,8 @@ def executed_footholds(joint_t: np.ndarray, joint_q: np.ndarray, gt_t: np.ndarra
 
     Foot centres from forward kinematics on the joint states and the true base pose; a stance
     is a run of samples with the foot slower than ``speed_mps`` lasting ``min_stance_s``; a new
-    foothold is counted when the stance position moved ``min_move_m`` from the leg's last one.
+    foothold is counted when the stance position moved ``min_move_m`` from the leg's last one
+    (the initial stance is not a foothold of the run).
     """
     from terrain_perception.kinematics import forward
     if len(joint_t) < 3 or len(gt_t) < 3:
@@ -237,7 +238,9 @@ def executed_footholds(joint_t: np.ndarray, joint_q: np.ndarray, gt_t: np.ndarra
             if joint_t[j] - joint_t[k] >= min_stance_s:
                 p = np.median(feet[k:j + 1, leg], axis=0)
                 p[2] -= model.foot_radius_m
-                if last is None or np.linalg.norm(p[:2] - last[:2]) >= min_move_m:
+                if last is None:
+                    last = p          # the initial stance: where the foot was, not a step
+                elif np.linalg.norm(p[:2] - last[:2]) >= min_move_m:
                     out.append([leg, *p])
                     last = p
             k = j + 1
@@ -296,9 +299,11 @@ def compute_summary(d: RunData, model=None, cost_cfg: CostConfig = CostConfig())
                                             or crossed_k[0] < first_fall[0])
         s['crossed'] = crossed
         s['falls'] = falls
-        s['distance_m'] = round(float(x[-1] - c.start_x_m), 4)
-        s['max_distance_m'] = round(float(x.max() - c.start_x_m), 4)
-        s['distance_to_cross_m'] = round(c.finish_x_m - c.start_x_m, 4)
+        # From where the robot really started (a replayed bag may start anywhere).
+        s['start_x_m'] = round(float(x[0]), 4)
+        s['distance_m'] = round(float(x[-1] - x[0]), 4)
+        s['max_distance_m'] = round(float(x.max() - x[0]), 4)
+        s['distance_to_cross_m'] = round(c.finish_x_m - float(x[0]), 4)
         path = np.linalg.norm(np.diff(d.gt_T[:, :3, 3], axis=0), axis=1).sum()
         s['path_length_m'] = round(float(path), 4)
         s['time_to_cross_s'] = (round(float(d.gt_t[crossed_k[0]] - d.gt_t[0]), 3)

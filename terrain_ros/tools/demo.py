@@ -6,6 +6,7 @@ terrain fill, footstep planner, walking controller: one process each, all on the
 
     terrain-demo [--robot littledog] [--course rocks-6cm] [--seed 0] [--run-dir DIR]
                  [--max-sim-time 150] [--timeout 840] [--image-scale 1.0] [--no-bag]
+                 [--real-time-factor 0.15] [--stall-time 60] [--blind] [--replay BAG]
 
 Run directory (default ``runs/<date>-<robot>-<course>-s<seed>``)::
 
@@ -14,8 +15,12 @@ Run directory (default ``runs/<date>-<robot>-<course>-s<seed>``)::
     logs/<node>.log, logs/bag.log                           each process's output
     launch.yaml                                             the launch file as run
 
+The simulator is capped at ``--real-time-factor`` simulated seconds per wall second so that
+every node keeps up with the simulated clock on a small machine.
+
 The run ends when the robot has crossed (the true base is past the rough section by the hind
-legs' reach), has fallen, the simulated time reaches ``--max-sim-time``, the wall time reaches
+legs' reach), has fallen, has not advanced 1 cm for ``--stall-time`` simulated seconds, the
+simulated time reaches ``--max-sim-time``, the wall time reaches
 ``--timeout``, the simulator stops, or on Ctrl-C (a second Ctrl-C stops at once). Then the
 recorder gets SIGINT (so the bag is closed cleanly), the nodes are stopped, and the report is
 written from what the demo's monitor received. A node that is not installed, dies or keeps
@@ -75,6 +80,12 @@ def _parser() -> argparse.ArgumentParser:
                    help='stop after this much wall time, start-up included [s] (default 840)')
     p.add_argument('--image-scale', type=float, default=1.0,
                    help='camera resolution relative to the robot profile (default 1)')
+    p.add_argument('--real-time-factor', type=float, default=0.15,
+                   help='cap on simulated seconds per wall second, so the nodes keep up with '
+                        'the simulated clock (default 0.15; 0 = as fast as possible)')
+    p.add_argument('--stall-time', type=float, default=60.0,
+                   help='end the run when the robot has not advanced 1 cm in this much '
+                        'simulated time [s] (default 60)')
     p.add_argument('--camera-rate', type=float, default=0.0,
                    help='periodic captures per simulated second (default: the profile\'s)')
     p.add_argument('--launch', type=Path, default=None,
@@ -629,7 +640,8 @@ def run(args) -> int:
     status = preflight(launch_src, launch_run)
     declared = (yaml.safe_load(launch_run.read_text()) or {}).get('arguments') or {}
     cli = {'robot': args.robot, 'course': args.course, 'seed': str(args.seed),
-           'image_scale': str(args.image_scale), 'camera_rate_hz': str(args.camera_rate)}
+           'image_scale': str(args.image_scale), 'camera_rate_hz': str(args.camera_rate),
+           'real_time_factor': str(args.real_time_factor)}
     if args.blind:
         cli['planner_map'] = '/map/blind'
     if course.name in ('rocks-12cm', 'stones-15cm'):
@@ -694,6 +706,9 @@ def run(args) -> int:
         status[name] = {**status.get(name, {}), **st}
     data.nodes = {k: {kk: vv for kk, vv in v.items()} for k, v in status.items()}
     data.sim_time_s, data.wall_time_s, data.end_reason = sim_t, wall, end_reason
+    if args.replay is not None:
+        data.notes.append(f'replay of {args.replay}: robot, course and seed are the command '
+                          'line\'s (--robot/--course/--seed), not read from the bag')
     if recorder is not None:
         data.notes.append(f'bag: {run_dir / "bag"} (recorder exit code {bag_code}: '
                           f'{_log_tail(log_dir, "bag")})')
@@ -748,6 +763,7 @@ def _watch(args, monitor: Monitor, launcher: LoggedLauncher, launcher_thread, pl
     next_print = 0.0
     fallen_since = None
     last_sim, last_sim_wall = None, time.monotonic()
+    best_x, best_t = None, 0.0
     span = max(course.finish_x_m - course.start_x_m, 1e-6)
     while True:
         time.sleep(0.2)
@@ -777,6 +793,12 @@ def _watch(args, monitor: Monitor, launcher: LoggedLauncher, launcher_thread, pl
         x = T[0, 3] if T is not None else None
         if x is not None and x >= course.finish_x_m and player is None:
             return 'crossed'
+        if x is not None and t is not None and player is None:
+            if best_x is None or x > best_x + 0.01:
+                best_x, best_t = x, t
+            elif t - best_t >= args.stall_time:
+                return (f'stalled: no progress for {args.stall_time:.0f} s of simulated time '
+                        f'(x = {x:.3f} m)')
         if T is not None and monitor.fallen_now():
             fallen_since = fallen_since if fallen_since is not None else (t or 0.0)
             if (t or 0.0) - fallen_since >= 2.0:
