@@ -333,22 +333,28 @@ def reachable(robot: RobotModel, T_map_base: np.ndarray, feet_map: np.ndarray, l
     p_base = (centre - t) @ R
     if len(legs) == 4 and np.array_equal(legs, np.arange(4)):   # one stance: one IK call
         return stance_in_reach(robot, p_base[None], reach_fraction)[0]
-    targets = np.broadcast_to(np.array(robot.nominal_feet) + [0, 0, robot.foot_radius_m],
-                              (len(p_base), 4, 3)).copy()
-    targets[np.arange(len(p_base)), legs] = p_base
-    ok = solve_ik(robot, targets).ok[np.arange(len(p_base)), legs]
     flex = np.array(robot.leg_plane_offsets)[legs]
-    dist = np.linalg.norm(p_base - flex, axis=1)
-    return ok & (dist <= reach_fraction * robot.leg_length_m)
+    ok = np.linalg.norm(p_base - flex, axis=1) <= reach_fraction * robot.leg_length_m
+    idx = np.nonzero(ok)[0]          # IK (and its failure messages) only where it can succeed
+    if len(idx):
+        targets = np.broadcast_to(np.array(robot.nominal_feet) + [0, 0, robot.foot_radius_m],
+                                  (len(idx), 4, 3)).copy()
+        targets[np.arange(len(idx)), legs[idx]] = p_base[idx]
+        ok[idx] = solve_ik(robot, targets).ok[np.arange(len(idx)), legs[idx]]
+    return ok
 
 
 def stance_in_reach(robot: RobotModel, feet_base: np.ndarray,
                     reach_fraction: float) -> np.ndarray:
     """(P, 4) reachability of foot-sphere centres ``feet_base`` (P, 4, 3) [m, base_link]: IK
     within joint limits and hip-to-foot distance <= ``reach_fraction`` x leg length."""
-    ok = solve_ik(robot, feet_base).ok
     dist = np.linalg.norm(feet_base - np.array(robot.leg_plane_offsets), axis=-1)
-    return ok & (dist <= reach_fraction * robot.leg_length_m)
+    ok = dist <= reach_fraction * robot.leg_length_m
+    rows = np.nonzero(np.all(ok, axis=1))[0]   # IK only for stances that can pass
+    ok[:] = False
+    if len(rows):
+        ok[rows] = solve_ik(robot, feet_base[rows]).ok
+    return ok
 
 
 # --------------------------------------------------------------------------------------------
@@ -671,10 +677,14 @@ class FootstepPlanner:
         # Lowering the base by dh along its own z raises every foot by dh in base_link.
         drop = (1.0 - levels) * self.robot.standing_height_m
         P = p[None] + drop[:, None, None] * np.array([0.0, 0.0, 1.0])
-        ok = np.all(stance_in_reach(self.robot, P, self.cfg.reach_fraction), axis=1)
-        if not np.any(ok):
+        # Distance check for all heights at once; IK level by level, usually one call.
+        near = np.all(np.linalg.norm(P - np.array(self.robot.leg_plane_offsets), axis=-1)
+                      <= self.cfg.reach_fraction * self.robot.leg_length_m, axis=1)
+        k = next((int(i) for i in np.nonzero(near)[0]
+                  if stance_in_reach(self.robot, P[i:i + 1], self.cfg.reach_fraction).all()),
+                 None)
+        if k is None:
             return None
-        k = int(np.argmax(ok))
         self._last_crouch = float(levels[k])
         T = T.copy()
         T[:3, 3] -= drop[k] * T[:3, 2]
