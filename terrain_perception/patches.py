@@ -613,14 +613,15 @@ def find_patches(cloud: np.ndarray, fx: float, fy: float, gravity_cam: np.ndarra
             :func:`gravity_in_camera`).
         cfg: parameters.
         rng: random generator for steps 10-11 (default: seeded from ``cfg.random_seed``).
-        timing: record per-stage wall times in ``PatchSet.timings_ms`` (benchmarks only).
+        timing: record per-stage CPU times of this process in ``PatchSet.timings_ms``
+            (benchmark instrumentation only; off by default).
 
     Returns:
         The accepted patches in the camera frame. No valid seeds is not an error: the result is
         empty and ``counts`` says which step removed them.
     """
     import time
-    clock = time.perf_counter if timing else (lambda: 0.0)
+    clock = time.process_time if timing else (lambda: 0.0)
     t0 = clock()
     if not (np.isfinite(fx) and np.isfinite(fy)) or fx <= 0 or fy <= 0:
         raise ValueError(f'focal lengths must be positive, got fx={fx}, fy={fy}')

@@ -270,7 +270,7 @@ def run(args) -> dict:
           f'{patch_cfg.max_seeds}, r = {patch_cfg.patch_radius_m} m ==')
     print(f'frames {P["frames"]}; CPU ms/frame median {P["patch_ms_per_frame"]:.1f} '
           f'(p90 {P["patch_ms_per_frame_p90"]:.1f}, wall {P["patch_wall_ms_per_frame"]:.1f}); '
-          'stages (median wall ms) '
+          'stages (median CPU ms) '
           + ', '.join(f'{k} {v:.1f}' for k, v in P['stage_ms_median'].items()))
     print(f'patches/frame {P["patches_per_frame_mean"]:.1f} (kept {100 * P["kept_share"]:.1f} % '
           f'of fitted); patches/s whole frame {P["patches_per_s"]:.0f}, stage IV only '
