@@ -9,9 +9,14 @@
   bound close to its value, (c) is safe for the foot on the map (:func:`unsafe_cells`: slope and
   unevenness limits), (d) is within the leg's reach (analytic IK within joint limits, with a
   reach margin) from the body pose during the swing, and (e) leaves the next swing's support
-  triangle able to hold the COG with ``stability_margin_m`` within reach. Among those, the
-  foothold minimises omega x (cost + distance from the nominal foothold + height change).
-  Salient contact patches (:mod:`terrain_perception.patches`) near a cell lower its cost.
+  triangle able to hold the COG with ``stability_margin_m`` within reach, with at least one
+  foothold for that next leg (one-swing lookahead). Among those, the foothold minimises
+  omega x (cost + distance from the stride-rule foothold + height change). Salient contact
+  patches (:mod:`terrain_perception.patches`) near a cell lower its cost. During each swing the
+  COG sits in the other three feet's triangle shrunk by the margin, the body follows the feet's
+  plane and crouches (down to ``min_crouch``) when that keeps every leg in reach. When a stance
+  has no feasible continuation, ``recovery`` retries with another leg first, short re-placing
+  steps, then half the margin; the status text names what was relaxed.
 * **Gait selection** (paper 002 Fig. 4): per gait period the body advances ``A``; each leg's
   search area is ``[kL_{i-1}, wL_{i-1} + 2A]`` along the walking direction. If every cell of all
   four areas has Shao cost ``|h - ground| + Dev(h)`` below ``Threshold`` and every foot is in
