@@ -35,7 +35,7 @@ from scipy.spatial.transform import Rotation, Slerp
 
 from terrain_perception.config import param
 from terrain_perception.grid import ELEVATION, OBSERVED, VARIANCE, GridMap
-from terrain_perception.transforms import angle_between, invert, transform_points
+from terrain_perception.transforms import angle_between, invert
 
 MIN = 'min'
 MAX = 'max'
@@ -125,7 +125,7 @@ class MapperConfig:
                                 'value of a per-cell least-squares plane',
                                 choices=('mean', 'plane'))
     cell_outlier_gate_m: float = param(0.015, 'per capture, samples farther than this [m] from '
-                                       'their cell\'s median are dropped (0 = keep all)',
+                                       'their cell\'s mean are dropped (0 = keep all)',
                                        0.0, 1.0)
     recenter_distance_m: float = param(0.5, 'move the maps when the robot is this far [m] '
                                        'from the fine map centre', 0.0, 100.0)
@@ -169,6 +169,11 @@ class MapperUpdate:
     n_model: int = 0
     n_degenerate: int = 0
     min_information: float = float('nan')
+
+
+def _apply(T: np.ndarray, pts: np.ndarray) -> np.ndarray:
+    """``T`` applied to float64 points ``(N, 3)`` (contiguous rotation: BLAS path)."""
+    return np.dot(pts, np.ascontiguousarray(T[:3, :3].T)) + T[:3, 3]
 
 
 def _check_T(T: np.ndarray, name: str) -> np.ndarray:
@@ -441,7 +446,8 @@ class FineHeightMap:
             ``z = h + gx dx + gy dy`` evaluated at the cell centre; falls back to the mean when a
             cell's samples do not span a plane).
         outlier_gate_m: samples of one :meth:`add` farther than this [m] from their cell's
-            median in that batch are dropped (0 = keep all).
+            mean in that batch (computed twice, the second time without the first pass's
+            outliers) are dropped (0 = keep all).
     """
 
     _STATS = ('n', 'mean', 'm2', 'min', 'max', 'last', 'sx', 'sy', 'sxx', 'sxy', 'syy', 'sxz',
@@ -478,28 +484,35 @@ class FineHeightMap:
             return 0
         ij, f, z = ij[ok], f[ok], points_map[ok, 2]
         lin = ij[:, 0] * self.shape[1] + ij[:, 1]
-        # one sort (by cell, then height), then every per-cell sum in a single reduceat
-        order = np.lexsort((z, lin))
-        lin = lin[order]
-        starts = np.flatnonzero(np.r_[True, lin[1:] != lin[:-1]])
+        size = self.shape[0] * self.shape[1]
         if self.outlier_gate_m > 0:
-            # drop samples far from their cell's median in this capture (stereo mismatches)
-            cnt = np.diff(np.r_[starts, len(lin)])
-            med = z[order][starts + cnt // 2]
-            keep = np.abs(z[order] - np.repeat(med, cnt)) <= self.outlier_gate_m
-            order, lin = order[keep], lin[keep]
-            starts = np.flatnonzero(np.r_[True, lin[1:] != lin[:-1]])
-        cells = lin[starts]
-        nb = np.diff(np.r_[starts, len(lin)]).astype(np.float64)
+            # drop samples far from their cell's mean in this capture (stereo mismatches);
+            # twice, so that a gross outlier's pull on the first mean is undone
+            keep = np.ones(len(z), bool)
+            for _ in range(2):
+                cnt = np.bincount(lin, weights=keep, minlength=size)
+                with np.errstate(invalid='ignore', divide='ignore'):
+                    mean = np.bincount(lin, weights=z * keep, minlength=size) / cnt
+                keep = np.abs(z - mean[lin]) <= self.outlier_gate_m
+            lin, z, f, ij = lin[keep], z[keep], f[keep], ij[keep]
+            if len(z) == 0:
+                return 0
+        # full-length bincounts (no sort), then merge only the touched cells
+        nb_all = np.bincount(lin, minlength=size).astype(np.float64)
+        cells = np.flatnonzero(nb_all)
+        nb = nb_all[cells]
         z0 = float(np.mean(z))  # reference height keeps the squared sums well conditioned
-        zs = z[order] - z0
+        zs = z - z0
         # offsets from the cell centre [m] for the per-cell plane
-        dx = (f[order, 0] - ij[order, 0] - 0.5) * r
-        dy = (f[order, 1] - ij[order, 1] - 0.5) * r
-        W = np.stack([zs, zs * zs, dx, dy, dx * dx, dx * dy, dy * dy, dx * zs, dy * zs], 1)
-        S = np.add.reduceat(W, starts, axis=0)
-        zmin = np.minimum.reduceat(zs, starts) + z0
-        zmax = np.maximum.reduceat(zs, starts) + z0
+        dx = (f[:, 0] - ij[:, 0] - 0.5) * r
+        dy = (f[:, 1] - ij[:, 1] - 0.5) * r
+        S = np.stack([np.bincount(lin, weights=w, minlength=size)[cells] for w in
+                      (zs, zs * zs, dx, dy, dx * dx, dx * dy, dy * dy, dx * zs, dy * zs)], 1)
+        zmin_all = np.full(size, np.inf)
+        zmax_all = np.full(size, -np.inf)
+        np.minimum.at(zmin_all, lin, z)
+        np.maximum.at(zmax_all, lin, z)
+        zmin, zmax = zmin_all[cells], zmax_all[cells]
         mb_rel = S[:, 0] / nb
         mb = mb_rel + z0
         m2b = np.maximum(S[:, 1] - nb * mb_rel * mb_rel, 0.0)
@@ -791,7 +804,7 @@ class IcpMapper:
         min_info = float('nan')
         if len(corr) >= 6:
             T_cam, eig, n_degenerate = remove_degenerate_motion(
-                T_cam, T_cam_prior, transform_points(T_cam, np.asarray(src.points)[corr[:, 0]]),
+                T_cam, T_cam_prior, _apply(T_cam, np.asarray(src.points)[corr[:, 0]]),
                 np.asarray(self._model.normals)[corr[:, 1]], c.degeneracy_threshold)
             min_info = float(eig[0])
             if n_degenerate:
@@ -843,7 +856,7 @@ class IcpMapper:
                     corr: np.ndarray) -> float:
         if len(corr) == 0:
             return float('inf')
-        p = transform_points(T_map_camera, np.asarray(src.points)[corr[:, 0]])
+        p = _apply(T_map_camera, np.asarray(src.points)[corr[:, 0]])
         q = np.asarray(self._model.points)[corr[:, 1]]
         n = np.asarray(self._model.normals)[corr[:, 1]]
         return float(np.sqrt(np.mean(np.einsum('ij,ij->i', p - q, n) ** 2)))
@@ -857,11 +870,11 @@ class IcpMapper:
         """Add a capture at a known camera pose to both models (moving them if needed)."""
         c = self.config
         self._recenter(T_map_base[:3, 3])
-        self.fine.add(transform_points(T_map_camera, fine_camera), stamp_s)
+        self.fine.add(_apply(T_map_camera, fine_camera), stamp_s)
         # coarse model: the capture's sparse points with normals from its own neighbourhood
         model_pts = fine_camera if c.model_from == 'fine' else src_camera
         new = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(
-            transform_points(T_map_camera, model_pts)))
+            _apply(T_map_camera, model_pts)))
         new = new.voxel_down_sample(c.coarse_voxel_m)
         if c.normal_source == 'height_grid':
             nrm = cloud_height_normals(np.asarray(new.points), c.coarse_voxel_m,
