@@ -104,21 +104,24 @@ class WalkRunner:
     chunks, like a receding-horizon plan being replaced); ``result()`` summarises everything
     run so far. The controller's odom frame starts at the simulated base pose, so odom = world
     (no drift correction: dead reckoning along the desired trajectory only). Falls (tilt over
-    30 deg or the body touching ``ground_id``), non-foot ground contacts and the COG margin are
-    checked every ``check_every`` physics steps; contacts with ``obstacle_id`` at every step.
+    30 deg or the body touching ``ground_id``, one body id or several), non-foot ground
+    contacts and the COG margin are checked every ``check_every`` physics steps; contacts
+    with ``obstacle_id`` at every step.
     """
 
     def __init__(self, client, robot: SimRobot, config: Optional[WalkingConfig] = None,
                  dt_s: float = 1.0 / 500.0, height: gaitlib.HeightFn = None,
                  record_com: bool = False, obstacle_id: Optional[int] = None,
-                 ground_id: Optional[int] = None, check_every: int = 5) -> None:
+                 ground_id=None, check_every: int = 5) -> None:
         self.client, self.robot, self.dt_s = client, robot, dt_s
         cfg = config or WalkingConfig(plan_timeout_s=1e6)
         self.controller = WalkingController(robot.model, cfg, height=height)
         self.T_start = robot.base_pose()
         q, dq, _ = robot.joint_states()
         self.controller.reset(0.0, q, self.T_start)
-        self.record_com, self.obstacle_id, self.ground_id = record_com, obstacle_id, ground_id
+        self.record_com, self.obstacle_id = record_com, obstacle_id
+        self.ground_ids = () if ground_id is None else tuple(
+            int(g) for g in np.atleast_1d(ground_id))
         self.check_every = check_every
         self.t = 0.0
         self.foot_err: list = []
@@ -175,8 +178,8 @@ class WalkRunner:
         if check:
             tilt = robot.base_tilt_deg()
             self.max_tilt = max(self.max_tilt, tilt)
-            if self.ground_id is not None:
-                pts = client.getContactPoints(bodyA=robot.body_id, bodyB=self.ground_id)
+            for gid in self.ground_ids:
+                pts = client.getContactPoints(bodyA=robot.body_id, bodyB=gid)
                 feet = set(int(i) for i in robot.foot_links)
                 if any(p[3] == -1 for p in pts):
                     self.fell = True
