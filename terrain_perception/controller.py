@@ -111,6 +111,19 @@ class _Segment:
     def t_end(self) -> float:
         return self.t0 + self.duration
 
+    def joints_many(self, taus: np.ndarray) -> tuple:
+        """Angles and rates ``(P, 12)`` at times ``taus`` ``(P,)`` into the segment (clipped
+        to it: after its end the final angles hold)."""
+        x = self.spline.x
+        taus = np.clip(np.asarray(taus, dtype=float), 0.0, self.duration)
+        h = x[1] - x[0]
+        i = np.minimum((taus / h).astype(int), len(x) - 2)
+        dx = (taus - x[i])[:, None]
+        c = self.spline.c[:, i, :]
+        pos = ((c[0] * dx + c[1]) * dx + c[2]) * dx + c[3]
+        vel = (3.0 * c[0] * dx + 2.0 * c[1]) * dx + c[2]
+        return pos, vel
+
     def joints(self, tau: float) -> tuple:
         """Spline angles and rates (12,) at ``tau`` [s] into the segment (clipped).
 
@@ -306,10 +319,9 @@ class WalkingController:
         if self._seg is None:
             q = self._stand_q()
             return JointCommand(np.tile(q, (len(times), 1)), np.zeros((len(times), 12)))
-        pos, vel = zip(*(self._seg.joints(t - self._seg.t0) for t in times))
-        vel = np.array(vel)
+        pos, vel = self._seg.joints_many(times - self._seg.t0)
         vel[times >= self._seg.t_end] = 0.0
-        return JointCommand(self._clip(np.array(pos)), vel)
+        return JointCommand(self._clip(pos), vel)
 
     def _clip(self, q: np.ndarray) -> np.ndarray:
         # The IK knots respect the limits; the spline between knots may overshoot by a hair.

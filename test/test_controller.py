@@ -171,3 +171,21 @@ def test_capture_requests_only_when_body_is_still():
     for k in range(1, 4):
         ctl.update(t_end + k * 0.5)
         assert ctl.capture_due(t_end + k * 0.5)
+
+
+def test_preview_matches_the_commands_at_those_times():
+    m = load_robot_model('littledog')
+    a, b = (WalkingController(m, WalkingConfig(plan_timeout_s=100)) for _ in range(2))
+    legs, pos = G.straight_footsteps(m, np.eye(4) @ make_T(t=[0, 0, m.standing_height_m]),
+                                     0.1)
+    for c in (a, b):
+        c.reset(0.0, None, make_T(t=[0, 0, m.standing_height_m]))
+        c.set_footsteps(legs, pos, 'walk', 0.0)
+    a.update(0.2)
+    times = 0.2 + np.arange(11) * 0.01         # within the first body shift
+    prev = a.preview(times)
+    for k, t in enumerate(times):
+        cmd = b.update(t)
+        np.testing.assert_allclose(prev.positions[k], cmd.positions, atol=1e-12)
+        np.testing.assert_allclose(prev.velocities[k], cmd.velocities, atol=1e-12)
+    assert np.abs(prev.positions[-1] - prev.positions[0]).max() > 1e-4   # it does move

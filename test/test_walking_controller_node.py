@@ -57,7 +57,7 @@ def test_node_holds_stance_then_walks_the_plan(ros_context, executor):
     assert spin_until(executor, publish_js, 10.0)
     cmd = got['cmd'][-1]
     assert list(cmd.joint_names) == list(MODEL.joint_names)
-    assert len(cmd.points) == 11
+    assert len(cmd.points) == 51
     np.testing.assert_allclose(cmd.points[0].positions, q, atol=1e-9)   # holds the stance
     T = pose_to_matrix(got['odom'][-1].pose.pose)
     np.testing.assert_allclose(T[:3, 3], [0.4, 0.0, MODEL.standing_height_m], atol=1e-9)

@@ -61,7 +61,9 @@ class WalkingNodeConfig:
     robot: str = param('littledog', 'robot profile: config/robots/<name>.yaml or a path')
     control_rate_hz: float = param(50.0, 'joint trajectories published per second [Hz]',
                                    1.0, 1000.0)
-    horizon_s: float = param(0.1, 'time covered by each published trajectory [s]', 0.0, 5.0)
+    horizon_s: float = param(0.5, 'time covered by each published trajectory [s]; longer than '
+                             'the worst gap between ticks, so a late tick does not stall the '
+                             'bridge mid-motion', 0.0, 5.0)
     point_dt_s: float = param(0.01, 'spacing of the trajectory points [s]', 0.001, 1.0)
     initial_x_m: float = param(0.0, 'base x in map at start-up (odom = map until ICP) [m]')
     initial_y_m: float = param(0.0, 'base y in map at start-up [m]')
@@ -87,6 +89,7 @@ class WalkingControllerNode(Node):
         self._q: Optional[np.ndarray] = None
         self._dq: Optional[np.ndarray] = None
         self._started = False
+        self._durations: list = []
         self.plans_received = 0
 
         self.pub_cmd = self.create_publisher(JointTrajectory, '/joint_commands', RELIABLE_QOS)
@@ -209,17 +212,17 @@ class WalkingControllerNode(Node):
         c = self.node_cfg
         n = int(round(c.horizon_s / c.point_dt_s)) + 1
         offsets = np.arange(n) * c.point_dt_s
+        if len(self._durations) != n:
+            self._durations = [Duration(sec=int(o), nanosec=int(round((o - int(o)) * 1e9)))
+                               for o in offsets]
         cmd = self.controller.preview(t + offsets)
         traj = JointTrajectory()
         traj.header = make_header('base_link', t)
         traj.joint_names = list(self.model.joint_names)
-        for k in range(n):
-            pt = JointTrajectoryPoint()
-            pt.positions = cmd.positions[k].tolist()
-            pt.velocities = cmd.velocities[k].tolist()
-            sec = int(offsets[k])
-            pt.time_from_start = Duration(sec=sec, nanosec=int(round((offsets[k] - sec) * 1e9)))
-            traj.points.append(pt)
+        pos, vel = cmd.positions.tolist(), cmd.velocities.tolist()
+        traj.points = [JointTrajectoryPoint(positions=pos[k], velocities=vel[k],
+                                            time_from_start=self._durations[k])
+                       for k in range(n)]
         self.pub_cmd.publish(traj)
 
         T = self.controller.odom_pose
