@@ -48,6 +48,9 @@ class WalkingConfig:
                                     0.0, 10.0)
     trot_swing_fraction: float = param(0.7, 'Trot swing duration as a fraction of the crawl '
                                        'swing [-]', 0.1, 1.0)
+    trot_max_step_fraction: float = param(1.0, 'Refuse trot pairs with a step longer than this '
+                                          'fraction of max_step_length_m (the trot\'s COG sits '
+                                          'on the support diagonal) [-]', 0.1, 3.0)
     stability_margin_m: float = param(0.0, 'COG distance inside the support triangle before '
                                       'a swing [m] (0 = profile)', 0.0, 0.5)
     terrain_clearance_m: float = param(0.0, 'Swing apex above the highest terrain under the '
@@ -476,6 +479,12 @@ class WalkingController:
         targets = np.array(step.targets, dtype=float)
         targets[:, 2] -= self.config.touchdown_depth_m
         d = np.linalg.norm(targets[:, :2] - self._feet[legs, :2], axis=1)
+        if step.gait == 'trot' and np.any(
+                d > self.config.trot_max_step_fraction * m.max_step_length_m + 1e-9):
+            self._step_error(f'trot step of {LEG_NAMES[legs[int(np.argmax(d))]]} is '
+                             f'{d.max():.3f} m, longer than {self.config.trot_max_step_fraction}'
+                             f' x max_step_length_m; standing')
+            return None
         if np.any(d > self.config.max_step_factor * m.max_step_length_m):
             self._step_error(f'step of {LEG_NAMES[legs[int(np.argmax(d))]]} is {d.max():.3f} m,'
                              f' longer than {self.config.max_step_factor} x max_step_length_m')

@@ -189,3 +189,15 @@ def test_preview_matches_the_commands_at_those_times():
         np.testing.assert_allclose(prev.positions[k], cmd.positions, atol=1e-12)
         np.testing.assert_allclose(prev.velocities[k], cmd.velocities, atol=1e-12)
     assert np.abs(prev.positions[-1] - prev.positions[0]).max() > 1e-4   # it does move
+
+
+def test_long_trot_steps_are_refused():
+    m = load_robot_model('littledog')
+    ctl = WalkingController(m, WalkingConfig(plan_timeout_s=100))
+    ctl.reset(0.0)
+    legs, pos = G.straight_footsteps(m, ctl.odom_pose, 0.4, 0.1, gait='trot')
+    pos[legs == 0] += [0.04, 0.0, 0.0]         # LF's first trot step becomes 0.14 m > 0.12 m
+    ctl.set_footsteps(legs, pos, 'trot', 0.0)
+    ctl.update(0.0)
+    assert 'trot step of LF' in ctl.last_error and ctl.steps_done == 0
+    assert ctl.status == 'standing'

@@ -172,8 +172,10 @@ class WalkRunner:
                     self.foot_err.append(float(np.linalg.norm(feet[leg, :2] - tgt[:2])))
         if seg is not None and seg != prev and seg.kind == 'swing':
             for leg in seg.legs:
-                if self._queue:
-                    self._targets[leg] = self._queue.pop(0)[1]
+                # the controller may reorder a pair (a split trot step): match by leg
+                k = next((k for k, (lg, _) in enumerate(self._queue) if lg == leg), None)
+                if k is not None:
+                    self._targets[leg] = self._queue.pop(k)[1]
         self._prev = seg
         if check:
             tilt = robot.base_tilt_deg()
