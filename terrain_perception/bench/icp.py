@@ -17,7 +17,9 @@ increment as its motion prediction) when installed.
 
 Timing is wall-clock on this machine with every library's default threading; ``icp_ms`` is the
 alignment step (ICP + guards), ``update_ms`` the whole capture (validation, ICP, fusion into both
-maps); ``max_rate_hz = 1000 / mean(update_ms)``.
+maps). The table shows wall-clock times; the JSON's ``icp_ms_median`` and ``max_rate_hz = 1000 /
+mean(update_ms)`` use process CPU time (all threads summed), because the machine is shared and
+wall time measures the other jobs as much as the mapper.
 """
 
 from __future__ import annotations
@@ -180,24 +182,29 @@ def map_rmse(grid: GridMap, course: GridMap) -> Dict[str, float]:
 # ------------------------------------------------------------------------------------------
 def run_mapper(config: mp.MapperConfig, T_base_camera: np.ndarray, clouds: List[np.ndarray],
                T_dr: np.ndarray, stamps: np.ndarray) -> Dict[str, object]:
-    """Feed every capture through :class:`IcpMapper`; time the alignment and the update."""
+    """Feed every capture through :class:`IcpMapper`; time the alignment and the update, as
+    wall-clock and as process CPU time (all threads; on a shared machine CPU time is what the
+    mapper costs, wall time also counts the other jobs)."""
     m = mp.IcpMapper(config, T_base_camera)
     est = np.empty_like(T_dr)
-    icp_ms, upd_ms = [], []
+    icp_ms, upd_ms, icp_cpu, upd_cpu = [], [], [], []
     for k, cloud in enumerate(clouds):
-        t0 = time.perf_counter()
+        c0, t0 = time.process_time(), time.perf_counter()
         fine, src = m.prepare(cloud)
-        t1 = time.perf_counter()
+        c1, t1 = time.process_time(), time.perf_counter()
         u = m.align(src, T_dr[k])
-        t2 = time.perf_counter()
+        c2, t2 = time.process_time(), time.perf_counter()
         if u.accepted:
             m.fuse(fine, src, u.T_map_camera, u.T_map_base, float(stamps[k]))
-        t3 = time.perf_counter()
+        c3, t3 = time.process_time(), time.perf_counter()
         est[k] = u.T_map_base
         if k > 0:  # the first capture has nothing to align to
             icp_ms.append(1e3 * (t2 - t1))
             upd_ms.append(1e3 * (t3 - t0))
+            icp_cpu.append(1e3 * (c2 - c1))
+            upd_cpu.append(1e3 * (c3 - c0))
     return {'poses': est, 'icp_ms': np.array(icp_ms), 'update_ms': np.array(upd_ms),
+            'icp_cpu_ms': np.array(icp_cpu), 'update_cpu_ms': np.array(upd_cpu),
             'counters': dict(m.counters), 'grid': m.fine_grid(), 'mapper': m}
 
 
@@ -431,8 +438,11 @@ def run(args: argparse.Namespace) -> dict:
                   f'{rm_st["cells"]} cells; from true poses: '
                   f'{rm_st_true["rmse_m"] * 1e3:.2f} mm (the stereo clouds\' own error)')
 
-    icp_med = float(np.median(ours['icp_ms']))
-    rate = 1e3 / float(np.mean(ours['update_ms']))
+    icp_med = float(np.median(ours['icp_cpu_ms']))
+    rate = 1e3 / float(np.mean(ours['update_cpu_ms']))
+    print(f'\nmapper cost in CPU time (shared machine; wall times above also count other jobs): '
+          f'ICP median {icp_med:.1f} ms, update mean {np.mean(ours["update_cpu_ms"]):.1f} ms '
+          f'-> {rate:.1f} Hz sustainable')
     figures = {
         'final_err_dr_m': e_dr['final_m'],
         'final_err_icp_m': e_ours['final_m'],
@@ -447,6 +457,9 @@ def run(args: argparse.Namespace) -> dict:
             'stride_error': args.stride_error, 'yaw_drift_deg_per_m': args.yaw_drift,
             'kiss_icp_version': kiss_version, 'methods': results,
             'yaw_err_dr_deg': e_dr['final_yaw_deg'],
+            'icp_ms_median_wall': float(np.median(ours['icp_ms'])),
+            'update_ms_mean_wall': float(np.mean(ours['update_ms'])),
+            'update_ms_mean_cpu': float(np.mean(ours['update_cpu_ms'])),
         },
     }
     ok_final = e_ours['final_m'] <= 0.01 and e_ours['final_m'] <= 0.1 * e_dr['final_m']
