@@ -84,7 +84,8 @@ class StereoInputError(ValueError):
 class StereoConfig:
     """Parameters of the stereo pipeline (matching, post-processing, reprojection)."""
 
-    num_disparities: int = param(64, 'disparity search range [px]; a multiple of 16', 16, 512)
+    num_disparities: int = param(96, 'disparity search range [px]; a multiple of 16; must '
+                                 'cover the nearest ground (littledog 96, frog 112)', 16, 512)
     min_disparity: int = param(0, 'smallest disparity searched [px]', -128, 256)
     block_size_px: int = param(15, 'SAD window size m [px], odd', 5, 51)
     pad_left: bool = param(True, 'pad the images on the left by the search range so that '

@@ -16,6 +16,7 @@ from stereo_node.node import StereoNode, StereoSync
 from terrain_perception.bench.stereo import render_pair_raycast, synthetic_course
 from terrain_perception.camera import PinholeCamera, StereoCamera
 from terrain_perception.ground_plane import camera_pitch_from_pose
+from terrain_perception.stereo import StereoConfig
 from terrain_perception.raycast import interpolate_height
 from terrain_perception.transforms import make_T, rot_y, transform_points
 from terrain_ros.conversions import (cloud_to_xyz, msg_to_disparity, numpy_to_image,
@@ -252,11 +253,11 @@ def test_runtime_parameters_are_checked_and_applied(ros_context):
     node = StereoNode(context=ros_context)
     res = node.set_parameters([Parameter('num_disparities', value=40)])[0]
     assert not res.successful and 'multiple of 16' in res.reason
-    assert node.stereo_cfg.num_disparities == 64
+    assert node.stereo_cfg.num_disparities == StereoConfig().num_disparities
     res = node.set_parameters([Parameter('block_size_px', value=99)])[0]
     assert not res.successful and 'block_size_px' in res.reason
-    assert node.set_parameters([Parameter('num_disparities', value=96)])[0].successful
-    assert node.stereo_cfg.num_disparities == 96
+    assert node.set_parameters([Parameter('num_disparities', value=112)])[0].successful
+    assert node.stereo_cfg.num_disparities == 112
     assert node.set_parameters([Parameter('ground_plane.inlier_threshold_m',
                                           value=0.01)])[0].successful
     assert node.plane_cfg.inlier_threshold_m == 0.01
