@@ -7,7 +7,7 @@ BIN := $(VENV)/bin
 RUN_DIR ?=
 DEMO_ARGS ?=
 
-.PHONY: setup demo test test-core bench clean
+.PHONY: setup demo test test-core test-closed-loop bench clean
 
 setup:
 	@bash scripts/setup.sh
@@ -19,7 +19,11 @@ test: setup
 	@$(BIN)/python -m pytest -q
 
 test-core: setup
-	@$(BIN)/python -m pytest -q -m "not graph"
+	@$(BIN)/python -m pytest -q -m "not graph and not closed_loop"
+
+# Issue 8's closed-loop acceptance tests (about 15 min; not met yet, see docs/CLOSED_LOOP.md).
+test-closed-loop: setup
+	@$(BIN)/python -m pytest -q -m closed_loop
 
 bench: setup
 	@bash scripts/run_benchmarks.sh
