@@ -110,16 +110,17 @@ def _hz_pub(rate: float):
 def test_topic_hz_reports_20hz_within_5_percent():
     pub = _hz_pub(20.0)
     try:
-        res = _run(BIN / 'terrain-topic', 'hz', '/hz_test', '--duration', '5')
+        res = _run(BIN / 'terrain-topic', '--spin-time', '10', 'hz', '/hz_test',
+                   '--duration', '5')
         assert res.returncode == 0, res.stderr
         rates = [float(line.split(':')[1]) for line in res.stdout.splitlines()
                  if line.startswith('average rate')]
         assert rates and abs(rates[-1] - 20.0) <= 1.0, res.stdout
-        listing = _run(BIN / 'terrain-topic', 'list', '-t')
+        listing = _run(BIN / 'terrain-topic', '--spin-time', '5', 'list', '-t')
         assert '/hz_test [std_msgs/msg/String]' in listing.stdout
-        info = _run(BIN / 'terrain-topic', 'info', '/hz_test')
+        info = _run(BIN / 'terrain-topic', '--spin-time', '5', 'info', '/hz_test')
         assert 'Type: std_msgs/msg/String' in info.stdout and 'Publisher count: 1' in info.stdout
-        echo = _run(BIN / 'terrain-topic', 'echo', '/hz_test', '--once')
+        echo = _run(BIN / 'terrain-topic', 'echo', '/hz_test', '--once', '--timeout', '10')
         assert echo.returncode == 0 and 'data: x' in echo.stdout
     finally:
         pub.kill()

@@ -86,8 +86,8 @@ def test_two_processes_with_params_and_remaps_stop_cleanly_on_sigint(tmp_path):
         # Parameters and remaps reached the processes: the file value on /a, the argument on /b.
         for topic, word in (('/a/chatter', 'from_file'), ('/b/chatter', 'bonjour')):
             echo = subprocess.run([BIN / 'terrain-topic', 'echo', topic, '--once',
-                                   '--timeout', '15'], capture_output=True, text=True,
-                                  timeout=40)
+                                   '--timeout', '20'], capture_output=True, text=True,
+                                  timeout=60)
             assert f'data: {word}' in echo.stdout, echo.stdout + echo.stderr
     finally:
         proc.send_signal(signal.SIGINT)

@@ -120,7 +120,8 @@ def _report_rate(stamps) -> bool:
 
 
 def _echo(node, executor, args) -> int:
-    type_name = wait_for_topic(node, args.topic, args.spin_time)
+    # With --timeout the topic may also take that long to appear (slow discovery, late start).
+    type_name = wait_for_topic(node, args.topic, max(args.spin_time, args.timeout or 0.0))
     cls = message_class(type_name)
     want = 1 if args.once else args.count
     got = []
