@@ -35,7 +35,7 @@ from scipy.spatial.transform import Rotation, Slerp
 
 from terrain_perception.config import param
 from terrain_perception.grid import ELEVATION, OBSERVED, VARIANCE, GridMap
-from terrain_perception.transforms import angle_between, invert
+from terrain_perception.transforms import angle_between, invert, transform_points
 
 MIN = 'min'
 MAX = 'max'
@@ -169,11 +169,6 @@ class MapperUpdate:
     n_model: int = 0
     n_degenerate: int = 0
     min_information: float = float('nan')
-
-
-def _apply(T: np.ndarray, pts: np.ndarray) -> np.ndarray:
-    """``T`` applied to float64 points ``(N, 3)`` (einsum: no BLAS thread pool for a 3x3)."""
-    return np.einsum('nj,ij->ni', pts, T[:3, :3], optimize=False) + T[:3, 3]
 
 
 def _check_T(T: np.ndarray, name: str) -> np.ndarray:
@@ -804,7 +799,7 @@ class IcpMapper:
         min_info = float('nan')
         if len(corr) >= 6:
             T_cam, eig, n_degenerate = remove_degenerate_motion(
-                T_cam, T_cam_prior, _apply(T_cam, np.asarray(src.points)[corr[:, 0]]),
+                T_cam, T_cam_prior, transform_points(T_cam, np.asarray(src.points)[corr[:, 0]]),
                 np.asarray(self._model.normals)[corr[:, 1]], c.degeneracy_threshold)
             min_info = float(eig[0])
             if n_degenerate:
@@ -856,7 +851,7 @@ class IcpMapper:
                     corr: np.ndarray) -> float:
         if len(corr) == 0:
             return float('inf')
-        p = _apply(T_map_camera, np.asarray(src.points)[corr[:, 0]])
+        p = transform_points(T_map_camera, np.asarray(src.points)[corr[:, 0]])
         q = np.asarray(self._model.points)[corr[:, 1]]
         n = np.asarray(self._model.normals)[corr[:, 1]]
         return float(np.sqrt(np.mean(np.einsum('ij,ij->i', p - q, n) ** 2)))
@@ -870,11 +865,11 @@ class IcpMapper:
         """Add a capture at a known camera pose to both models (moving them if needed)."""
         c = self.config
         self._recenter(T_map_base[:3, 3])
-        self.fine.add(_apply(T_map_camera, fine_camera), stamp_s)
+        self.fine.add(transform_points(T_map_camera, fine_camera), stamp_s)
         # coarse model: the capture's sparse points with normals from its own neighbourhood
         model_pts = fine_camera if c.model_from == 'fine' else src_camera
         new = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(
-            _apply(T_map_camera, model_pts)))
+            transform_points(T_map_camera, model_pts)))
         new = new.voxel_down_sample(c.coarse_voxel_m)
         if c.normal_source == 'height_grid':
             nrm = cloud_height_normals(np.asarray(new.points), c.coarse_voxel_m,
