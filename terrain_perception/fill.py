@@ -476,25 +476,31 @@ def gaussian_weights(w: int, sigma_cells: float) -> np.ndarray:
 # --------------------------------------------------------------------------------------------
 # Fill-Terrain
 # --------------------------------------------------------------------------------------------
-def select_round(known: np.ndarray, rank: np.ndarray, w: int) -> np.ndarray:
+def select_round(known: np.ndarray, rank: np.ndarray, w: int,
+                 todo: Optional[np.ndarray] = None) -> np.ndarray:
     """Flat indices (ascending) of the cells filled in this round (see module docstring).
 
     A missing cell is selected when its key ``known_count * N + rank`` (N = cells in the map)
     beats every other missing cell in its w x w window; cells with no known cell in their
-    window wait. Works on the bounding box of the missing cells plus the window margin.
+    window wait. ``todo`` (bool, optional) limits the candidates: other missing cells are left
+    unknown and neither compete nor count as known. Works on the bounding box of the
+    candidates plus the window margin; empty when no candidate has a known neighbour.
     """
     import cv2
     nx, ny = known.shape
     r = w // 2
-    miss_i = np.flatnonzero((~known).any(1))
-    miss_j = np.flatnonzero((~known).any(0))
+    want = ~known if todo is None else todo & ~known
+    miss_i = np.flatnonzero(want.any(1))
+    miss_j = np.flatnonzero(want.any(0))
+    if miss_i.size == 0:
+        return np.zeros(0, np.int64)
     i0, i1 = max(miss_i[0] - r, 0), min(miss_i[-1] + r + 1, nx)
     j0, j1 = max(miss_j[0] - r, 0), min(miss_j[-1] + r + 1, ny)
     kn = known[i0:i1, j0:j1]
     # exact small-integer counts in float32; outside the grid counts as unknown
     count = cv2.boxFilter(kn.astype(np.float32), -1, (w, w), normalize=False,
                           borderType=cv2.BORDER_CONSTANT)
-    cand = ~kn & (count > 0.5)
+    cand = want[i0:i1, j0:j1] & (count > 0.5)
     key = np.where(cand, np.rint(count).astype(np.float64) * known.size + rank[i0:i1, j0:j1],
                    -1.0)
     local_max = cv2.dilate(key, np.ones((w, w), np.uint8), borderType=cv2.BORDER_CONSTANT,
@@ -544,7 +550,8 @@ def _choose(A, B, Abar, C, W):
 
 def fill_terrain(heights: np.ndarray, upper_bound: Optional[np.ndarray],
                  library: Sequence[np.ndarray], config: FillConfig = FillConfig(),
-                 constrained: bool = True) -> FillResult:
+                 constrained: bool = True,
+                 fill_mask: Optional[np.ndarray] = None) -> FillResult:
     """Fill every missing cell by Fill-Terrain (paper 000, Fig. 6), vectorised per round.
 
     Args:
@@ -554,6 +561,10 @@ def fill_terrain(heights: np.ndarray, upper_bound: Optional[np.ndarray],
             :class:`PatchLibrary` built from them (reuse it across calls: building is ~0.1 s).
         config: window, samples, weighting, seed, batch size.
         constrained: False ignores the bounds (texture synthesis without constraints).
+        fill_mask: optional (nx, ny) bool: fill only these missing cells; the other missing
+            cells stay NaN and are never context. Cells of the mask that never get a known
+            cell within their window (no context at all) stay NaN too. None = fill all (the
+            random draws are then exactly those of the unmasked algorithm).
 
     Returns:
         :class:`FillResult` (heights float64, filled mask, rounds, chosen library positions).
@@ -574,6 +585,11 @@ def fill_terrain(heights: np.ndarray, upper_bound: Optional[np.ndarray],
     nx, ny = H.shape
     known = np.isfinite(H)
     missing0 = ~known
+    todo = None
+    if fill_mask is not None:
+        if np.shape(fill_mask) != H.shape:
+            raise ValueError(f'fill_mask has shape {np.shape(fill_mask)}, heights {H.shape}')
+        todo = missing0 & np.asarray(fill_mask, bool)
     rng = np.random.default_rng(config.seed)
     rank = rng.permutation(nx * ny).reshape(nx, ny)
     W = gaussian_weights(w, config.weight_sigma_cells).ravel()
@@ -589,8 +605,10 @@ def fill_terrain(heights: np.ndarray, upper_bound: Optional[np.ndarray],
     rounds = 0
     n = int(config.samples)
     per_block = max(1, int(config.batch_cells))
-    while not known.all():
-        sel = select_round(known, rank, w)
+    while not known.all() if todo is None else (todo & ~known).any():
+        sel = select_round(known, rank, w, todo)
+        if sel.size == 0:            # only masked cells without any context are left
+            break
         rounds += 1
         u = rng.random((len(sel), n))
         si, sj = np.divmod(sel, ny)
@@ -608,7 +626,9 @@ def fill_terrain(heights: np.ndarray, upper_bound: Optional[np.ndarray],
             choice[cells] = g[np.arange(len(k)), k]
         known.ravel()[sel] = True
     out = Hp[r:r + nx, r:r + ny].copy()
-    return FillResult(out, missing0, rounds, choice.reshape(nx, ny))
+    filled = missing0 & known
+    out[~known] = np.nan
+    return FillResult(out, filled, rounds, choice.reshape(nx, ny))
 
 
 # --------------------------------------------------------------------------------------------
@@ -743,24 +763,75 @@ class RayConfig:
         'all around', 1.0, 180.0)
 
 
+BLIND_AREA_POLICIES = ('unknown', 'texture')
+
+
+@dataclass(frozen=True)
+class FillerConfig:
+    """How :class:`TerrainFiller` updates its output when the map changes."""
+
+    blind_area: str = param(
+        'unknown', 'never-observed cells that no line of sight crossed (behind and under the '
+        'robot, outside every view): unknown = left NaN (filled 0, cost NaN: the planner '
+        'treats them as unobserved); texture = filled like the bounded ones (library texture '
+        'with no constraint: invents rocks on flat ground)', choices=BLIND_AREA_POLICIES)
+    refill_margin_cells: int = param(
+        3, 'unobserved cells within this many cells of a changed cell (new height, new or '
+        'tighter bound, new cell after a grid move) are refilled; the other fills are kept '
+        'and act as context [cells] (w // 2 + 1: the cells whose window saw the change, and '
+        'one ring more)', 0, 10000)
+    whole_hole_cells: int = param(
+        200, 'a touched hole (8-connected fillable region) of at most this many cells is '
+        'refilled whole (no seam in small holes); larger ones only near the change [cells]',
+        0, 10 ** 8)
+
+
+def _pose_keys(poses: np.ndarray) -> list:
+    """Hashable identity of each capture pose (micrometre / 1e-6 rounding)."""
+    poses = np.asarray(poses, np.float64)
+    flat = poses.reshape(len(poses), int(np.prod(poses.shape[1:])))
+    return [np.round(p * 1e6).astype(np.int64).tobytes() for p in flat]
+
+
+def _shift(a: np.ndarray, off_i: np.ndarray, shape: Tuple[int, int], fill=np.nan) -> np.ndarray:
+    """``a`` (on a grid whose origin is ``off_i`` cells before the new one) on the new grid."""
+    nx, ny = shape
+    dst = np.full((nx, ny), fill, dtype=a.dtype)
+    i0, j0 = max(off_i[0], 0), max(off_i[1], 0)
+    i1 = min(off_i[0] + nx, a.shape[0])
+    j1 = min(off_i[1] + ny, a.shape[1])
+    if i1 > i0 and j1 > j0:
+        dst[i0 - off_i[0]:i1 - off_i[0], j0 - off_i[1]:j1 - off_i[1]] = a[i0:i1, j0:j1]
+    return dst
+
+
 class TerrainFiller:
-    """Keeps a filled copy of a changing height map and refills only what a change touches.
+    """Keeps a filled copy of a changing height map and updates only what a change touches.
 
     The fill method is ``fill_config.method`` (Fill-Terrain by default; any baseline works).
     ``update(grid, camera_poses)`` returns a new :class:`~terrain_perception.grid.GridMap`
-    with layers ``elevation`` (observed heights + filled ones), ``observed`` (1 = measured;
-    never set by filling), ``upper_bound`` (line-of-sight bound, NaN = none), ``filled``
-    (1 = synthesised) and ``cost`` (:func:`terrain_perception.features.cost_map`).
+    with layers ``elevation`` (observed heights + filled ones; NaN = unknown), ``observed``
+    (1 = measured; never set by filling), ``upper_bound`` (line-of-sight bound, NaN = none),
+    ``filled`` (1 = synthesised) and ``cost`` (:func:`terrain_perception.features.cost_map`).
 
     Observed cells are those with ``observed == 1`` when the input has that layer, else those
     with a finite elevation. Bounds are the minimum of the input's ``upper_bound`` layer (if
     any) and those reconstructed from the capture poses (:func:`bounds_from_captures`).
 
-    Incremental rule: cells whose observed height or bound changed (or that are new after the
-    grid moved by whole cells) mark the holes (8-connected unobserved regions) within one
-    window of them for refilling; the other holes keep their previous fill and act as known
-    context. The cost is recomputed on the bounding box of every changed height plus the
-    cost windows' reach. ``last_region`` is that box ``(i0, i1, j0, j1)`` or None.
+    Incremental rules (the grid is a robot-centred window that moves by whole cells):
+
+    * Bounds: a running-minimum bound layer is kept and moved with the grid origin; each
+      update adds only the rays of capture poses not seen before (identified by their
+      value), cast over the map of that update. A pose dropped from the list keeps its
+      contribution (its lines of sight stay true). A resolution change or a move by a
+      fraction of a cell starts over from every pose given.
+    * Fill: unobserved cells within ``refill_margin_cells`` of a changed cell (new observed
+      height, new or tighter bound, cell new after a move) are refilled; every other fill is
+      kept and acts as known context.
+    * Blind area (``filler_config.blind_area``): never-observed cells without any bound are
+      left unknown by default, not textured.
+    * Cost: recomputed on the bounding box of every changed height plus the cost windows'
+      reach. ``last_region`` is that box ``(i0, i1, j0, j1)`` or None.
 
     Any ValueError leaves the previous state untouched.
     """
@@ -768,12 +839,17 @@ class TerrainFiller:
     def __init__(self, library: Sequence[np.ndarray], library_resolution_m: float,
                  fill_config: FillConfig = FillConfig(), cost_config=None,
                  bounds_config: BoundsConfig = BoundsConfig(),
-                 ray_config: RayConfig = RayConfig()) -> None:
+                 ray_config: RayConfig = RayConfig(),
+                 filler_config: FillerConfig = FillerConfig()) -> None:
         from terrain_perception.features import CostConfig
         self.fill_config = fill_config
         self.cost_config = cost_config if cost_config is not None else CostConfig()
         self.bounds_config = bounds_config
         self.ray_config = ray_config
+        self.filler_config = filler_config
+        if filler_config.blind_area not in BLIND_AREA_POLICIES:
+            raise ValueError(f'unknown blind_area policy {filler_config.blind_area!r}; use '
+                             f'one of {BLIND_AREA_POLICIES}')
         if not np.isfinite(library_resolution_m) or library_resolution_m <= 0:
             raise ValueError(f'library resolution must be positive, got {library_resolution_m}')
         self.library_resolution_m = float(library_resolution_m)
@@ -781,6 +857,7 @@ class TerrainFiller:
         self._prev = None
         self.last_region: Optional[Tuple[int, int, int, int]] = None
         self.last_refilled = 0
+        self.last_new_captures = 0
 
     # -- inputs ----------------------------------------------------------------------------
     @staticmethod
@@ -809,32 +886,45 @@ class TerrainFiller:
             raise ValueError('every cell is unknown: nothing observed to fill from')
         return np.where(mask, elev, np.nan)
 
-    def bounds(self, grid, heights: np.ndarray, camera_poses: np.ndarray) -> np.ndarray:
-        """Line-of-sight bounds [m] of the unobserved cells (NaN = none), checked.
-
-        ``camera_poses``: (K, 4, 4) T_grid_camera (optical frame) or (K, 3) positions."""
-        from terrain_perception.grid import UPPER_BOUND
-        unobserved = ~np.isfinite(heights)
-        ub = np.full(heights.shape, np.nan)
+    @staticmethod
+    def _split_poses(camera_poses: np.ndarray):
+        """(positions (K, 3), optical axes (K, 3) or None, raw poses) of the capture poses."""
         poses = np.asarray(camera_poses, np.float64)
         if poses.ndim == 3:
             if poses.shape[1:] != (4, 4):
                 raise ValueError(f'camera poses must be (K, 4, 4) or (K, 3), got {poses.shape}')
-            cams, axes = poses[:, :3, 3], poses[:, :3, 2]
-        else:
-            cams, axes = poses.reshape(-1, 3), None
-        if len(cams):
-            rc = self.ray_config
-            ub = bounds_from_captures(heights, grid.resolution_m, grid.origin_xy, cams,
-                                      rc.max_range_m, rc.tol_m, rc.angular_step_rad,
-                                      target=unobserved, camera_axes=axes,
-                                      fov_half_angle_rad=np.radians(rc.fov_half_angle_deg)
-                                      ) + self.bounds_config.margin_m
+            return poses[:, :3, 3], poses[:, :3, 2], poses
+        poses = poses.reshape(-1, 3)
+        return poses, None, poses
+
+    def capture_bounds(self, grid, heights: np.ndarray, camera_poses: np.ndarray) -> np.ndarray:
+        """Viewshed bounds [m] of the unobserved cells from these captures alone (NaN = none).
+
+        ``camera_poses``: (K, 4, 4) T_grid_camera (optical frame) or (K, 3) positions."""
+        cams, axes, _ = self._split_poses(camera_poses)
+        if not len(cams):
+            return np.full(heights.shape, np.nan)
+        rc = self.ray_config
+        return bounds_from_captures(heights, grid.resolution_m, grid.origin_xy, cams,
+                                    rc.max_range_m, rc.tol_m, rc.angular_step_rad,
+                                    target=~np.isfinite(heights), camera_axes=axes,
+                                    fov_half_angle_rad=np.radians(rc.fov_half_angle_deg)
+                                    ) + self.bounds_config.margin_m
+
+    def bounds(self, grid, heights: np.ndarray, camera_poses: np.ndarray) -> np.ndarray:
+        """Line-of-sight bounds [m] of the unobserved cells from every given capture (NaN =
+        none) combined with the grid's ``upper_bound`` layer, checked; no state involved."""
+        return self._combine(grid, heights, self.capture_bounds(grid, heights, camera_poses))
+
+    @staticmethod
+    def _combine(grid, heights: np.ndarray, los: np.ndarray) -> np.ndarray:
+        from terrain_perception.grid import UPPER_BOUND
+        ub = los
         if UPPER_BOUND in grid:
             given = np.asarray(grid[UPPER_BOUND], np.float64)
             check_bounds(heights, given)           # refuses bounds below observed heights
             ub = np.fmin(ub, np.where(np.isinf(given), np.nan, given))
-        return np.where(unobserved, ub, np.nan)
+        return np.where(np.isfinite(heights), np.nan, ub)
 
     # -- the update ------------------------------------------------------------------------
     def _aligned_prev(self, grid):
@@ -846,25 +936,18 @@ class TerrainFiller:
         off_i = np.round(off).astype(int)
         if np.any(np.abs(off - off_i) > 1e-6):
             return None
-        nx, ny = grid.shape
-        out = {}
-        for k in ('obs', 'ub', 'elev', 'cost', 'filled'):
-            src = prev[k]
-            dst = np.full((nx, ny), np.nan)
-            i0, j0 = max(off_i[0], 0), max(off_i[1], 0)
-            i1 = min(off_i[0] + nx, src.shape[0])
-            j1 = min(off_i[1] + ny, src.shape[1])
-            if i1 > i0 and j1 > j0:
-                dst[i0 - off_i[0]:i1 - off_i[0], j0 - off_i[1]:j1 - off_i[1]] = src[i0:i1, j0:j1]
-            out[k] = dst
-        out['new'] = np.isnan(out['elev'])
+        out = {k: _shift(prev[k], off_i, grid.shape)
+               for k in ('obs', 'ub', 'los', 'elev', 'cost')}
+        out['new'] = _shift(np.ones(prev['obs'].shape, bool), off_i, grid.shape, False) == 0
+        out['keys'] = prev['keys']
         return out
 
     def update(self, grid, camera_poses: np.ndarray = np.zeros((0, 3))):
         """Fill ``grid`` (a GridMap) and return the output GridMap (see class docstring).
 
         ``camera_poses``: (K, 4, 4) capture poses T_grid_camera (optical frame, z = viewing
-        direction) or (K, 3) positions (then every direction counts as looked at)."""
+        direction) or (K, 3) positions (then every direction counts as looked at); all the
+        captures the map holds, old ones included (only new ones cost work)."""
         from terrain_perception.features import cost_map, window_cells
         from terrain_perception.grid import (COST, ELEVATION, FILLED, OBSERVED, UPPER_BOUND,
                                              GridMap)
@@ -872,27 +955,47 @@ class TerrainFiller:
             raise ValueError(f'the grid has {grid.resolution_m:g} m cells but the terrain '
                              f'library {self.library_resolution_m:g} m; they must match')
         heights = self.observed_heights(grid)
-        ub = self.bounds(grid, heights, camera_poses)
         observed = np.isfinite(heights)
-        w = self.fill_config.window_cells
         prev = self._aligned_prev(grid)
+        # bounds: the running minimum moved with the grid plus the rays of the new captures
+        _, _, raw = self._split_poses(camera_poses)
+        keys = _pose_keys(raw)
+        old = set() if prev is None else prev['keys']
+        new = np.array([k not in old for k in keys], bool)
+        los = np.full(grid.shape, np.nan) if prev is None else prev['los']
+        if new.any():
+            los = np.fmin(los, self.capture_bounds(grid, heights, raw[new]))
+        los = np.where(observed, np.nan, los)
+        ub = self._combine(grid, heights, los)
+        w = self.fill_config.window_cells
+        fc = self.filler_config
+        blind = ~observed & np.isnan(ub)
+        fillable = ~observed & ~blind if fc.blind_area == 'unknown' else ~observed
         same = lambda a, b: (a == b) | (np.isnan(a) & np.isnan(b))  # noqa: E731
         if prev is None:
-            changed = np.ones(grid.shape, bool)
+            refill = fillable
         else:
-            changed = ~same(heights, prev['obs']) | ~same(ub, prev['ub']) | prev['new']
-        # holes to refill: unobserved components within one window of a change
-        near = ndimage.binary_dilation(changed, np.ones((w, w), bool)) if changed.any() \
-            else changed
-        labels, _ = ndimage.label(~observed, np.ones((3, 3), bool))
-        hit = np.unique(labels[near & ~observed])
-        refill = np.isin(labels, hit[hit > 0])
+            # a tighter bound matters only where the kept fill now rises above it (or where a
+            # cell had no bound before): a fill below the new bound is still a valid sample
+            with np.errstate(invalid='ignore'):
+                tighter = ~same(ub, prev['ub']) & (np.isnan(prev['ub']) | ~(prev['elev'] <= ub))
+            changed = ~same(heights, prev['obs']) | tighter | prev['new']
+            m = int(fc.refill_margin_cells)
+            near = ndimage.binary_dilation(changed, np.ones((2 * m + 1, 2 * m + 1), bool)) \
+                if changed.any() and m > 0 else changed
+            # a fillable cell without a kept fill (new, or left unknown last time) is redone
+            refill = fillable & (near | np.isnan(prev['elev']))
+            if fc.whole_hole_cells > 0 and refill.any():
+                labels, _ = ndimage.label(fillable, np.ones((3, 3), bool))
+                sizes = np.bincount(labels.ravel())
+                hit = np.unique(labels[refill])
+                hit = hit[(hit > 0) & (sizes[hit] <= fc.whole_hole_cells)]
+                refill |= np.isin(labels, hit)
         elev = np.where(observed, heights, np.nan)
         if prev is not None:
-            keep = ~observed & ~refill
+            keep = fillable & ~refill
             elev[keep] = prev['elev'][keep]
-        filled_mask = ~observed
-        self.last_refilled = int(refill.sum())
+        self_refilled = int(refill.sum())
         if refill.any():
             ii, jj = np.nonzero(refill)
             i0, i1 = max(ii.min() - w, 0), min(ii.max() + w + 1, grid.shape[0])
@@ -903,10 +1006,14 @@ class TerrainFiller:
                 crop = elev.copy()
                 crop[refill] = np.nan
                 i0, i1, j0, j1 = 0, grid.shape[0], 0, grid.shape[1]
-            # bounds constrain the cells being filled; kept fills are context, like observations
-            ub_crop = np.where(np.isnan(crop), ub[i0:i1, j0:j1], np.nan)
-            res = fill(crop, ub_crop, self.library, self.fill_config)
             region = refill[i0:i1, j0:j1]
+            # bounds constrain the cells being filled; kept fills are context, like observations
+            ub_crop = np.where(region, ub[i0:i1, j0:j1], np.nan)
+            if self.fill_config.method in ('fill_terrain', 'texture_synthesis'):
+                res = fill_terrain(crop, ub_crop, self.library, self.fill_config,
+                                   self.fill_config.method == 'fill_terrain', fill_mask=region)
+            else:
+                res = fill(crop, ub_crop, self.library, self.fill_config)
             elev[i0:i1, j0:j1][region] = res.heights[region]
         # cost: recompute where heights changed, plus the reach of the cost windows
         cc = self.cost_config
@@ -914,10 +1021,11 @@ class TerrainFiller:
                     window_cells(cc.leg_window_m, grid.resolution_m)) // 2 + 1
         if prev is None:
             cost = cost_map(elev, grid.resolution_m, cc).astype(np.float64)
-            self.last_region = (0, grid.shape[0], 0, grid.shape[1])
+            region_box = (0, grid.shape[0], 0, grid.shape[1])
         else:
             cost = prev['cost'].copy()
             moved = ~same(elev, prev['elev'])
+            region_box = None
             if moved.any():
                 ii, jj = np.nonzero(moved)
                 r0, r1 = max(ii.min() - reach, 0), min(ii.max() + reach + 1, grid.shape[0])
@@ -926,14 +1034,16 @@ class TerrainFiller:
                 d0, d1 = max(s0 - reach, 0), min(s1 + reach, grid.shape[1])
                 sub = cost_map(elev[c0:c1, d0:d1], grid.resolution_m, cc)
                 cost[r0:r1, s0:s1] = sub[r0 - c0:r1 - c0, s0 - d0:s1 - d0]
-                self.last_region = (int(r0), int(r1), int(s0), int(s1))
-            else:
-                self.last_region = None
+                region_box = (int(r0), int(r1), int(s0), int(s1))
+        filled_mask = ~observed & np.isfinite(elev)
         out = GridMap(grid.resolution_m, grid.origin_xy, grid.shape, {
             ELEVATION: elev, OBSERVED: observed.astype(np.float32), UPPER_BOUND: ub,
             FILLED: filled_mask.astype(np.float32), COST: cost},
             frame_id=grid.frame_id, stamp_s=grid.stamp_s)
+        # commit the state only now: a ValueError above leaves it untouched
         self._prev = {'res': grid.resolution_m, 'origin': grid.origin_xy, 'obs': heights,
-                      'ub': ub, 'elev': elev, 'cost': cost,
-                      'filled': filled_mask.astype(np.float64)}
+                      'ub': ub, 'los': los, 'elev': elev, 'cost': cost, 'keys': set(keys)}
+        self.last_region = region_box
+        self.last_refilled = self_refilled
+        self.last_new_captures = int(new.sum())
         return out
