@@ -11,10 +11,16 @@ Publications:
                          ``upper_bound`` [m] (NaN = none), ``filled`` [0/1], ``cost`` [-]
     ~/diagnostics        diagnostic_msgs/DiagnosticArray: counters of refused input
 
-The core (:class:`terrain_perception.fill.TerrainFiller`) refills only the holes a change
-touches and recomputes the cost only around changed heights. A cell is never marked observed
-because it was filled. Work runs in a timer when a new grid or new poses arrived, so a grid and
-the poses of the same capture cost one fill.
+The core (:class:`terrain_perception.fill.TerrainFiller`) keeps a running-minimum bound layer
+that moves with the grid and casts only the new captures' rays, refills only near a change and
+recomputes the cost only around changed heights. Never-observed cells that no line of sight
+crossed (the blind area behind and under the robot) are left unknown by default
+(``filler.blind_area``). A cell is never marked observed because it was filled.
+
+Coalescing: callbacks only keep the newest message (converted when processed), so grids that
+queue up while an update runs are skipped. The mapper publishes the grid and the poses of a
+capture with one stamp: when both have arrived the update runs at once; otherwise the timer
+(``process_period_s``) processes whatever is pending.
 
 The terrain library is either a folder of ``.npz`` GridMaps (``library_dir``) or generated with
 Kolter's generator (``terrain_perception.terrain.library_terrains``) at the grid's resolution
@@ -25,6 +31,7 @@ not have): counted, logged once with its reason, and the last good output stays 
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import List, Optional
@@ -37,7 +44,8 @@ from terrain_msgs.msg import TerrainGrid
 
 from terrain_perception.config import param
 from terrain_perception.features import CostConfig
-from terrain_perception.fill import BoundsConfig, FillConfig, RayConfig, TerrainFiller
+from terrain_perception.fill import (BoundsConfig, FillConfig, FillerConfig, RayConfig,
+                                     TerrainFiller)
 from terrain_perception.grid import ELEVATION, GridMap
 from terrain_ros.conversions import grid_to_msg, msg_to_grid, pose_to_matrix
 from terrain_ros.node import Counters, run_node
@@ -58,7 +66,9 @@ class TerrainFillNodeConfig:
                                           '(rocks-6cm)', 0.005, 1.0)
     library_cache_dir: str = param('', 'generated library: folder to keep and reuse the '
                                    'terrains in; empty = no cache', )
-    process_period_s: float = param(0.1, 'how often pending input is processed [s]', 0.01, 60.0)
+    process_period_s: float = param(0.1, 'how often pending input is processed when the grid '
+                                    'and poses of one capture did not both arrive [s]',
+                                    0.01, 60.0)
     diagnostics_period_s: float = param(1.0, 'period of ~/diagnostics [s]', 0.05, 3600.0)
 
 
@@ -96,15 +106,21 @@ class TerrainFillNode(Node):
         self.bounds_cfg: BoundsConfig = declare_config(self, BoundsConfig, 'bounds',
                                                        on_change=self._on_cfg)
         self.ray_cfg: RayConfig = declare_config(self, RayConfig, 'rays', on_change=self._on_cfg)
+        self.filler_cfg: FillerConfig = declare_config(self, FillerConfig, 'filler',
+                                                       on_change=self._on_cfg)
         self.counters = Counters(self)
         self.filler: Optional[TerrainFiller] = None
         self._library: Optional[tuple] = None
         self._grid: Optional[GridMap] = None
+        self._grid_msg: Optional[TerrainGrid] = None   # newest, not yet converted
+        self._poses_msg: Optional[PoseArray] = None
         self._cams: np.ndarray = np.zeros((0, 4, 4))   # capture poses T_map_camera
         self._cams_frame: Optional[str] = None
         self._dirty = False
         self.last_output: Optional[GridMap] = None
         self.published = 0
+        self.skipped = 0            # grids superseded by a newer one before being processed
+        self.update_cpu_s: List[float] = []   # CPU time of each update (last 100)
         self._load_library()
 
         self.pub = self.create_publisher(TerrainGrid, '/map/filled', LATCHED_QOS)
@@ -121,6 +137,7 @@ class TerrainFillNode(Node):
         self.cost_cfg = current_config(self, CostConfig, 'cost')
         self.bounds_cfg = current_config(self, BoundsConfig, 'bounds')
         self.ray_cfg = current_config(self, RayConfig, 'rays')
+        self.filler_cfg = current_config(self, FillerConfig, 'filler')
         self._library = None
         self.filler = None
         self._load_library()
@@ -156,7 +173,8 @@ class TerrainFillNode(Node):
             return False
         try:
             self.filler = TerrainFiller(self._library[0], self._library[1], self.fill_cfg,
-                                        self.cost_cfg, self.bounds_cfg, self.ray_cfg)
+                                        self.cost_cfg, self.bounds_cfg, self.ray_cfg,
+                                        self.filler_cfg)
         except ValueError as exc:
             self.counters.bump('bad_library', str(exc), self.get_logger().error)
             return False
@@ -164,28 +182,52 @@ class TerrainFillNode(Node):
 
     # ------------------------------------------------------------------ input
     def _on_grid(self, msg: TerrainGrid) -> None:
-        try:
-            self._grid = msg_to_grid(msg)
-        except ValueError as exc:
-            self.counters.bump('bad_grid', str(exc))
-            return
+        if self._grid_msg is not None:
+            self.skipped += 1
+        self._grid_msg = msg
         self._dirty = True
+        self._process_if_paired()
 
     def _on_poses(self, msg: PoseArray) -> None:
-        try:
-            poses = np.array([pose_to_matrix(p) for p in msg.poses]).reshape(-1, 4, 4)
-        except ValueError as exc:
-            self.counters.bump('bad_poses', f'capture poses refused: {exc}')
-            return
-        self._cams = poses
-        self._cams_frame = msg.header.frame_id
+        self._poses_msg = msg
         self._dirty = True
+        self._process_if_paired()
+
+    def _process_if_paired(self) -> None:
+        """Update at once when the newest grid and poses come from the same capture."""
+        g, p = self._grid_msg, self._poses_msg
+        if g is not None and p is not None and g.header.stamp == p.header.stamp:
+            self._process()
+
+    def _take_input(self) -> bool:
+        """Convert the newest pending messages (older ones were dropped unconverted); False
+        when the pending grid was refused."""
+        if self._poses_msg is not None:
+            msg, self._poses_msg = self._poses_msg, None
+            try:
+                poses = np.array([pose_to_matrix(p) for p in msg.poses]).reshape(-1, 4, 4)
+            except ValueError as exc:
+                self.counters.bump('bad_poses', f'capture poses refused: {exc}')
+            else:
+                self._cams = poses
+                self._cams_frame = msg.header.frame_id
+        if self._grid_msg is not None:
+            msg, self._grid_msg = self._grid_msg, None
+            try:
+                self._grid = msg_to_grid(msg)
+            except ValueError as exc:
+                self.counters.bump('bad_grid', str(exc))
+                self._grid = None
+                return False
+        return True
 
     # ------------------------------------------------------------------ work
     def _process(self) -> None:
-        if not self._dirty or self._grid is None:
+        if not self._dirty:
             return
         self._dirty = False
+        if not self._take_input() or self._grid is None:
+            return
         grid = self._grid
         if not self._ensure_filler(grid.resolution_m):
             return
@@ -194,11 +236,14 @@ class TerrainFillNode(Node):
             self.counters.bump('frame_mismatch', f'capture poses are in {self._cams_frame!r}, '
                                f'the grid in {grid.frame_id!r}; poses ignored')
             cams = np.zeros((0, 4, 4))
+        c0 = time.process_time()
         try:
             out = self.filler.update(grid, cams)
         except ValueError as exc:
             self.counters.bump('bad_grid', f'{exc}; keeping the last output')
+            self._grid = None               # new poses alone do not retry a refused grid
             return
+        self.update_cpu_s = self.update_cpu_s[-99:] + [time.process_time() - c0]
         self.last_output = out
         self.pub.publish(grid_to_msg(out, basic_layers=(ELEVATION,)))
         self.published += 1

@@ -186,3 +186,50 @@ def test_poses_in_another_frame_are_not_used(ros_context, executor, library_dir)
     assert h.spin(lambda: len(h.got) >= 1)
     assert h.node.counters['frame_mismatch'] >= 1
     assert np.isnan(msg_to_grid(h.got[-1])[UPPER_BOUND]).all()
+
+
+def test_grid_and_poses_of_one_capture_are_processed_at_once(ros_context, executor,
+                                                             library_dir):
+    """No waiting for the timer: a grid and poses with one stamp trigger the update."""
+    truth, seen, cam = scene()
+    h = Harness(ros_context, executor, library_dir, process_period_s=60.0)
+    poses = poses_msg([cam])
+    grid = grid_msg(truth, seen, 7.0)
+    poses.header.stamp = grid.header.stamp
+    h.pub_grid.publish(grid)
+    h.pub_poses.publish(poses)
+    assert h.spin(lambda: len(h.got) >= 1, 5.0)
+    assert h.node.published == 1 and len(h.node.update_cpu_s) == 1
+    out = msg_to_grid(h.got[-1])
+    assert np.isfinite(out[UPPER_BOUND]).any()          # the poses were used
+
+
+def test_queued_grids_are_coalesced_to_the_newest(ros_context, executor, library_dir):
+    truth, seen, cam = scene()
+    h = Harness(ros_context, executor, library_dir, process_period_s=60.0)
+    node = h.node
+    node._on_poses(poses_msg([cam]))
+    for k in range(5):                  # as if five grids had queued during a long update
+        seen_k = seen.copy()
+        seen_k[:, :k] = False
+        node._on_grid(grid_msg(truth, seen_k, 10.0 + k))
+    node._process()
+    assert node.published == 1 and node.skipped == 4 and len(node.update_cpu_s) == 1
+    assert node.last_output.stamp_s == pytest.approx(14.0)
+    node._process()                     # nothing pending: nothing done
+    assert node.published == 1
+
+
+def test_blind_area_is_published_unknown(ros_context, executor, library_dir):
+    """Cells no capture looked at (here: without poses, all unobserved ones) stay NaN and are
+    not marked filled; with filler.blind_area texture they are filled."""
+    truth, seen, _ = scene()
+    h = Harness(ros_context, executor, library_dir)
+    h.pub_grid.publish(grid_msg(truth, seen))
+    assert h.spin(lambda: len(h.got) >= 1)
+    out = msg_to_grid(h.got[-1])
+    assert np.isnan(out[ELEVATION][~seen]).all() and not out[FILLED].any()
+    np.testing.assert_array_equal(out[ELEVATION][seen], truth[seen])
+    h.node.set_parameters([Parameter('filler.blind_area', value='texture')])
+    assert h.spin(lambda: len(h.got) >= 2)
+    assert np.isfinite(msg_to_grid(h.got[-1])[ELEVATION]).all()
