@@ -90,6 +90,24 @@ def _check_cloud(cloud: np.ndarray) -> np.ndarray:
     return np.asarray(cloud, dtype=np.float32)
 
 
+def _bilateral_scale(cloud: np.ndarray, cfg: PatchConfig) -> np.ndarray:
+    """Step 3 as a per-pixel factor ``(H, W)``: filtered depth / raw depth (NaN where invalid).
+
+    Only the depth image (z) is filtered; multiplying a point by its factor moves it along its
+    pixel ray to the new depth. Invalid (NaN or z <= 0) points are set to 0 m before filtering,
+    far outside the range sigma, so they do not bleed into valid ones."""
+    z = np.ascontiguousarray(cloud[..., 2])
+    with np.errstate(invalid='ignore'):
+        valid = z > 0                      # False for NaN
+    z0 = np.where(valid, z, np.float32(0.0))
+    zf = cv2.bilateralFilter(z0, cfg.bilateral_window_px, cfg.bilateral_sigma_depth_m,
+                             cfg.bilateral_sigma_space_px)
+    with np.errstate(invalid='ignore', divide='ignore'):
+        zf /= z0
+    zf[~valid] = np.nan
+    return zf
+
+
 def bilateral_filter_cloud(cloud: np.ndarray, cfg: PatchConfig) -> np.ndarray:
     """Step 3: discontinuity-preserving bilateral filter of an organized cloud ``(H, W, 3)``.
 
@@ -98,15 +116,43 @@ def bilateral_filter_cloud(cloud: np.ndarray, cfg: PatchConfig) -> np.ndarray:
     bleed into valid ones: they are set to 0 m before filtering, far outside the range sigma.
     """
     cloud = _check_cloud(cloud)
-    z = cloud[..., 2]
-    with np.errstate(invalid='ignore'):
-        valid = z > 0                      # False for NaN
-    z0 = np.where(valid, z, np.float32(0.0))
-    zf = cv2.bilateralFilter(z0, cfg.bilateral_window_px, cfg.bilateral_sigma_depth_m,
-                             cfg.bilateral_sigma_space_px)
-    with np.errstate(invalid='ignore', divide='ignore'):
-        scale = np.where(valid, zf / z0, np.float32(np.nan))
-    return cloud * scale[..., None]
+    return cloud * _bilateral_scale(cloud, cfg)[..., None]
+
+
+def _median_2x2_planes(planes) -> np.ndarray:
+    """2x2 block medians of three ``(h, w)`` coordinate planes (h, w even) -> ``(h/2, w/2, 3)``;
+    a point is valid when its z plane entry is finite."""
+    h, w = planes[0].shape
+    out = np.empty((h // 2, w // 2, 3), np.float32)
+    # Median of 4 = mean of the two middle values = (max of the pair minima + min of the pair
+    # maxima) / 2, pairing the rows first: row-strided views are what OpenCV's kernels take.
+    for k, p in enumerate(planes):
+        top, bot = p[0::2], p[1::2]
+        lo, hi = cv2.min(top, bot), cv2.max(top, bot)
+        m = np.maximum(lo[:, 0::2], lo[:, 1::2])
+        m += np.minimum(hi[:, 0::2], hi[:, 1::2])
+        out[..., k] = m
+    out *= np.float32(0.5)
+    # Blocks with an invalid point: median of their valid points (NaN when there are none).
+    z = planes[2]
+    zs = z[0::2] + z[1::2]
+    part = np.isnan(zs[:, 0::2] + zs[:, 1::2])
+    if np.any(part):
+        r, c = np.nonzero(part)
+        rr = (2 * r[:, None] + np.array([0, 0, 1, 1])).ravel()
+        cc = (2 * c[:, None] + np.array([0, 1, 0, 1])).ravel()
+        blk = np.stack([p[rr, cc].reshape(-1, 4) for p in planes], 1)     # (k, 3, 4)
+        bad = ~np.isfinite(blk[:, 2, :])
+        blk[np.broadcast_to(bad[:, None, :], blk.shape)] = np.nan
+        n = 4 - bad.sum(-1)
+        srt = np.sort(blk, axis=-1)                                          # NaN sorts last
+        idx_lo = np.maximum((n - 1) // 2, 0)[:, None, None].repeat(3, 1)
+        idx_hi = (n // 2)[:, None, None].repeat(3, 1)
+        med = 0.5 * (np.take_along_axis(srt, idx_lo, -1) + np.take_along_axis(srt, idx_hi, -1))
+        med = med[..., 0]
+        med[n == 0] = np.nan
+        out[r, c] = med
+    return out
 
 
 def median_downsample_2x2(cloud: np.ndarray) -> np.ndarray:
@@ -114,35 +160,17 @@ def median_downsample_2x2(cloud: np.ndarray) -> np.ndarray:
     block over its valid points (NaN where the block has none)."""
     cloud = _check_cloud(cloud)
     h, w = cloud.shape[0] // 2 * 2, cloud.shape[1] // 2 * 2
-    # One copy into (2, 2, h/2, w/2, 3) makes the four block members contiguous planes, which
-    # makes the element-wise work below ~3x faster than on strided views.
-    X = np.ascontiguousarray(cloud[:h, :w].reshape(h // 2, 2, w // 2, 2, 3)
-                             .transpose(1, 3, 0, 2, 4))
-    a, b, c, d = X[0, 0], X[0, 1], X[1, 0], X[1, 1]
-    # All four valid (the common case): median of 4 = (sum - max - min) / 2. NaN propagates
-    # through +, maximum and minimum, so blocks with an invalid point come out NaN here.
-    out = np.add(a, b)
-    out += c
-    out += d
-    hi = np.maximum(a, b)
-    np.maximum(hi, np.maximum(c, d), out=hi)
-    lo = np.minimum(a, b)
-    np.minimum(lo, np.minimum(c, d), out=lo)
-    out -= hi
-    out -= lo
-    out *= np.float32(0.5)
-    part = np.isnan(out[..., 2])
-    if np.any(part):
-        blk = np.stack([a[part], b[part], c[part], d[part]], axis=-1)  # (k, 3, 4)
-        n = np.isfinite(blk[:, 2, :]).sum(-1)
-        s = np.sort(blk, axis=-1)  # NaN sorts last
-        idx_lo = np.maximum((n - 1) // 2, 0)[:, None, None].repeat(3, 1)
-        idx_hi = (n // 2)[:, None, None].repeat(3, 1)
-        med = 0.5 * (np.take_along_axis(s, idx_lo, -1) + np.take_along_axis(s, idx_hi, -1))
-        med = med[..., 0]
-        med[n == 0] = np.nan
-        out[part] = med
-    return out
+    return _median_2x2_planes([np.ascontiguousarray(cloud[:h, :w, k]) for k in range(3)])
+
+
+def _filter_and_downsample(cloud: np.ndarray, cfg: PatchConfig):
+    """Steps 3-4 without materialising the filtered full-resolution cloud: returns ``D`` and the
+    step-3 factor (filtered cloud = ``cloud * scale[..., None]``, needed only at step 11)."""
+    scale = _bilateral_scale(cloud, cfg)
+    h, w = cloud.shape[0] // 2 * 2, cloud.shape[1] // 2 * 2
+    s = scale[:h, :w]
+    planes = [np.multiply(cloud[:h, :w, k], s) for k in range(3)]
+    return _median_2x2_planes(planes), scale
 
 
 # --------------------------------------------------------------------------------------------
@@ -201,14 +229,17 @@ def smallest_eigenvectors(C: np.ndarray) -> np.ndarray:
     r = np.clip(det / (2.0 * p ** 3), -1.0, 1.0)
     phi = np.arccos(r) / 3.0
     lam = q + 2.0 * p * np.cos(phi + 2.0 * np.pi / 3.0)
-    m0 = np.stack([a00 - lam, a01, a02], -1)
-    m1 = np.stack([a01, a11 - lam, a12], -1)
-    m2 = np.stack([a02, a12, a22 - lam], -1)
-    c = np.stack([np.cross(m0, m1), np.cross(m0, m2), np.cross(m1, m2)], -2)
+    d0, d1, d2 = a00 - lam, a11 - lam, a22 - lam
+    # Cross products of the rows (d0 a01 a02), (a01 d1 a12), (a02 a12 d2) of C - lambda I,
+    # written out: np.cross on many 3-vectors is dominated by its axis bookkeeping.
+    c = np.stack([a01 * a12 - a02 * d1, a02 * a01 - d0 * a12, d0 * d1 - a01 * a01,     # r0 x r1
+                  a01 * d2 - a02 * a12, a02 * a02 - d0 * d2, d0 * a12 - a01 * a02,     # r0 x r2
+                  d1 * d2 - a12 * a12, a12 * a02 - a01 * d2, a01 * a12 - d1 * a02],    # r1 x r2
+                 -1).reshape(C.shape[:-2] + (3, 3))
     nrm = np.einsum('...ij,...ij->...i', c, c)
     best = np.argmax(nrm, axis=-1)
     v = np.take_along_axis(c, best[..., None, None].repeat(3, -1), axis=-2)[..., 0, :]
-    vn = np.linalg.norm(v, axis=-1, keepdims=True)
+    vn = np.sqrt(np.take_along_axis(nrm, best[..., None], axis=-1))
     out = v / np.where(vn > 0, vn, 1.0)
     out[vn[..., 0] == 0] = np.array([0.0, 0.0, 1.0])  # isotropic: any direction
     return out
@@ -222,27 +253,23 @@ class IntegralMoments:
         cloud = _check_cloud(cloud)
         valid = np.isfinite(cloud[..., 2])
         h, w = valid.shape
-        # Centre on the mean point to keep the second moments well conditioned.
-        self.offset = cloud[valid].mean(axis=0, dtype=np.float64) if np.any(valid) \
-            else np.zeros(3)
-        p = cloud.astype(np.float64)
-        p -= self.offset
-        p[~valid] = 0.0
-        x, y, z = p[..., 0], p[..., 1], p[..., 2]
-        # OpenCV's integral is one C pass per image (4 channels max), ~20x numpy's two cumsums.
-        c1 = np.empty((h, w, 4))
-        c1[..., 0] = valid
-        c1[..., 1:] = p
-        c2 = np.empty((h, w, 4))
-        np.multiply(x, x, out=c2[..., 0])
-        np.multiply(x, y, out=c2[..., 1])
-        np.multiply(x, z, out=c2[..., 2])
-        np.multiply(y, y, out=c2[..., 3])
-        c3 = np.empty((h, w, 2))
-        np.multiply(y, z, out=c3[..., 0])
-        np.multiply(z, z, out=c3[..., 1])
-        self.ii = [cv2.integral(c, sdepth=cv2.CV_64F).reshape(h + 1, w + 1, -1)
-                   for c in (c1, c2, c3)]
+        # Centre on the mean point to keep the second moments well conditioned; the centred
+        # float32 products lose nothing that matters (relative 1e-7 of ~0.1 m coordinates), and
+        # the integrals themselves are summed in float64.
+        # Any point near the data will do: the mean of a 1/16 subsample (all points if that has
+        # none) saves a gather of every valid point.
+        sub = cloud[::4, ::4][valid[::4, ::4]]
+        sub = sub if len(sub) else cloud[valid]
+        self.offset = sub.mean(axis=0, dtype=np.float64) if len(sub) else np.zeros(3)
+        p = np.where(valid[..., None], cloud - self.offset.astype(np.float32), np.float32(0.0))
+        x, y, z = cv2.split(p)
+        cross = cv2.merge([valid.astype(np.float32), x * y, x * z, y * z])
+        # OpenCV's integral is one C pass per image (4 channels max), ~20x numpy's two cumsums;
+        # integral2 gives the sums and the squares in one pass.
+        s1, s2 = cv2.integral2(p, sdepth=cv2.CV_64F, sqdepth=cv2.CV_64F)
+        s3 = cv2.integral(cross, sdepth=cv2.CV_64F)
+        # channels: [n, xy, xz, yz], [x, y, z], [xx, yy, zz]
+        self.ii = [s3, s1, s2]
         self.shape = (h, w)
 
     def window_normals(self, rows: np.ndarray, cols: np.ndarray, half: np.ndarray,
@@ -258,15 +285,15 @@ class IntegralMoments:
         s = np.concatenate([ii[r1, c1] - ii[r0, c1] - ii[r1, c0] + ii[r0, c0]
                             for ii in self.ii], axis=1)
         n = s[:, 0]
-        ns = np.maximum(n, 1.0)
-        mx, my, mz = s[:, 1] / ns, s[:, 2] / ns, s[:, 3] / ns
+        m = s[:, 1:] / np.maximum(n, 1.0)[:, None]     # xy, xz, yz, x, y, z, xx, yy, zz
+        mx, my, mz = m[:, 3], m[:, 4], m[:, 5]
         C = np.empty((len(n), 3, 3))
-        C[:, 0, 0] = s[:, 4] / ns - mx * mx
-        C[:, 0, 1] = C[:, 1, 0] = s[:, 5] / ns - mx * my
-        C[:, 0, 2] = C[:, 2, 0] = s[:, 6] / ns - mx * mz
-        C[:, 1, 1] = s[:, 7] / ns - my * my
-        C[:, 1, 2] = C[:, 2, 1] = s[:, 8] / ns - my * mz
-        C[:, 2, 2] = s[:, 9] / ns - mz * mz
+        C[:, 0, 0] = m[:, 6] - mx * mx
+        C[:, 0, 1] = C[:, 1, 0] = m[:, 0] - mx * my
+        C[:, 0, 2] = C[:, 2, 0] = m[:, 1] - mx * mz
+        C[:, 1, 1] = m[:, 7] - my * my
+        C[:, 1, 2] = C[:, 2, 1] = m[:, 2] - my * mz
+        C[:, 2, 2] = m[:, 8] - mz * mz
         normals = smallest_eigenvectors(C)
         normals[n < min_points] = np.nan
         return normals, n
@@ -574,10 +601,45 @@ def _empty_patches(gravity, fixation, counts, timings) -> PatchSet:
                     np.zeros(0, np.int64), gravity, fixation, counts, timings)
 
 
-def _sample_neighbourhoods(cloud: np.ndarray, seeds_rc_full: np.ndarray, seed_pts: np.ndarray,
-                           fx: float, fy: float, cfg: PatchConfig, rng: np.random.Generator):
-    """Step 11: organized search. For each seed draw random pixels in the image window that
-    bounds its r-ball, keep those whose points lie within r, at most n_f of them."""
+def _seed_band(cloud: np.ndarray, fix: np.ndarray, fx: float, fy: float, cfg: PatchConfig):
+    """The full-resolution rows ``[a, b)`` (even) that steps 3-11 can read, and which of the
+    downsampled rows in them can hold a seed; ``None`` when no row can.
+
+    Exact, not a heuristic: a filtered depth is a convex combination of the valid raw depths in
+    its bilateral window and a 2x2 median lies between its block's values, so downsampled row
+    ``i`` can hold a point within R of ``f`` (hence with ``|z - f_z| <= R``) only if the raw
+    depths of rows ``2i - k .. 2i + 1 + k`` (k = bilateral radius) reach ``[f_z - R, f_z + R]``.
+    Around those rows steps 7 and 11 read windows of ``r f / z`` rows (largest at the nearest
+    depth a seed there can have), plus k rows so the filter is exact where it is read. Rows the
+    robot's camera sees far beyond the fixation point are thus never filtered."""
+    H = cloud.shape[0] // 2 * 2
+    z = np.ascontiguousarray(cloud[:H, :, 2])
+    with np.errstate(invalid='ignore'):
+        valid = z > 0
+    k = cfg.bilateral_window_px // 2
+    zmin = np.pad(np.where(valid, z, np.inf).min(1), k, constant_values=np.inf)
+    zmax = np.pad(np.where(valid, z, -np.inf).max(1), k, constant_values=-np.inf)
+    win = np.lib.stride_tricks.sliding_window_view
+    wmin = win(zmin, 2 + 2 * k)[0::2].min(1)
+    wmax = win(zmax, 2 + 2 * k)[0::2].max(1)
+    R = cfg.roi_radius_m * (1.0 + 1e-6) + 1e-6     # float32 rounding
+    cand = (wmax >= fix[2] - R) & (wmin <= fix[2] + R)
+    i = np.nonzero(cand)[0]
+    if len(i) == 0:
+        return None
+    zlo = np.maximum(np.maximum(wmin[i], fix[2] - R), 1e-3)
+    margin = np.ceil(cfg.patch_radius_m * max(fx, fy) / zlo).astype(np.int64) + 2
+    a = max(int((2 * i - margin).min()) - k, 0) // 2 * 2
+    b = min(int((2 * i + 2 + margin).max()) + k + 1, H) // 2 * 2
+    return a, b, cand[a // 2:b // 2]
+
+
+def _sample_neighbourhoods(cloud: np.ndarray, scale: np.ndarray, seeds_rc_full: np.ndarray,
+                           seed_pts: np.ndarray, fx: float, fy: float, cfg: PatchConfig,
+                           rng: np.random.Generator):
+    """Step 11: organized search in the filtered cloud ``cloud * scale[..., None]``. For each
+    seed draw random pixels in the image window that bounds its r-ball, keep those whose points
+    lie within r, at most n_f of them."""
     h, w = cloud.shape[:2]
     ns, nf = len(seed_pts), cfg.max_neighbours
     k = nf * cfg.neighbour_draws
@@ -589,7 +651,7 @@ def _sample_neighbourhoods(cloud: np.ndarray, seeds_rc_full: np.ndarray, seed_pt
     dv = (rng.random((ns, k)) * 2.0 - 1.0) * hv
     rr = np.clip(np.rint(seeds_rc_full[:, :1] + dv), 0, h - 1).astype(np.int64)
     cc = np.clip(np.rint(seeds_rc_full[:, 1:] + du), 0, w - 1).astype(np.int64)
-    pts = cloud[rr, cc].astype(np.float64)
+    pts = cloud[rr, cc].astype(np.float64) * scale[rr, cc][..., None]
     d2 = ((pts - seed_pts[:, None]) ** 2).sum(-1)
     ok = np.isfinite(d2) & (d2 <= r * r)
     rank = np.cumsum(ok, axis=1)
@@ -630,35 +692,48 @@ def find_patches(cloud: np.ndarray, fx: float, fy: float, gravity_cam: np.ndarra
     fix = fixation_point(g, cfg)
     counts: Dict[str, int] = {}
     times: Dict[str, float] = {}
-    # Stage I
-    C = bilateral_filter_cloud(cloud, cfg)
-    D = median_downsample_2x2(C)
+    # Stage I, on the rows that the later steps can read (see _seed_band)
+    cloud = _check_cloud(cloud)
+    band = _seed_band(cloud, fix, fx, fy, cfg)
+    if band is None:
+        counts['valid_points'] = counts['dtfp'] = counts['seeds'] = 0
+        times.update(stage1_ms=1e3 * (clock() - t0), stage23_ms=0.0, stage4_ms=0.0)
+        return _empty_patches(g, fix, counts, times)
+    a, b, cand = band
+    cloud = cloud[a:b]
+    D, scale = _filter_and_downsample(cloud, cfg)
     t1 = clock()
     times['stage1_ms'] = 1e3 * (t1 - t0)
     # Stage II: seeds within R of the fixation point
     dd = D - fix.astype(np.float32)
     with np.errstate(invalid='ignore'):
         in_roi = np.einsum('ijk,ijk->ij', dd, dd) <= np.float32(cfg.roi_radius_m ** 2)
+    in_roi &= cand[:, None]
     rows, cols = np.nonzero(in_roi)
-    counts['valid_points'] = int(np.isfinite(D[..., 2]).sum())
+    counts['valid_points'] = int(np.isfinite(D[cand, :, 2]).sum())
     counts['dtfp'] = int(len(rows))
     # Stage III + step 10. Filtering every candidate and then keeping a uniform random n_s of
     # the survivors has the same outcome distribution as visiting the candidates in uniformly
     # random order and keeping the first n_s survivors; the latter evaluates the normals of only
-    # about n_s / (survival rate) candidates instead of all of them.
-    order = rng.permutation(len(rows))
-    chunk = max(4 * cfg.max_seeds, 256)
-    kept, n_eval, n_don, n_dong = [], 0, 0, 0
-    don_all = np.empty(len(rows))
-    dong_all = np.empty(len(rows))
-    moments = None
-    if len(rows):
+    # about n_s / (survival rate) candidates instead of all of them. Chunks are sized from the
+    # survival rate so far.
+    n_cand = len(rows)
+    order = rng.choice(n_cand, min(n_cand, int(1.5 * cfg.max_seeds) + 16), replace=False)
+    kept, n_kept, n_eval, n_don, n_dong = [], 0, 0, 0, 0
+    don_all = np.empty(n_cand)
+    dong_all = np.empty(n_cand)
+    if n_cand:
         half = int(np.ceil(cfg.patch_radius_m * 0.5 * fx / np.nanmin(D[rows, cols, 2]))) + 1
         r0, r1 = max(rows.min() - half, 0), min(rows.max() + half + 1, D.shape[0])
         c0, c1 = max(cols.min() - half, 0), min(cols.max() + half + 1, D.shape[1])
         moments = IntegralMoments(D[r0:r1, c0:c1])
-    while n_eval < len(order) and sum(len(k) for k in kept) < cfg.max_seeds:
-        sel = order[n_eval:n_eval + chunk]
+    while n_eval < n_cand and n_kept < cfg.max_seeds:
+        if n_eval == len(order):      # first draw used up: the rest in random order
+            rest = np.setdiff1d(np.arange(n_cand), order, assume_unique=True)
+            order = np.concatenate([order, rng.permutation(rest)])
+        rate = max(n_dong / n_eval, 0.05) if n_eval else 1.0
+        size = int(1.2 * (cfg.max_seeds - n_kept) / rate) + 16
+        sel = order[n_eval:n_eval + size]
         n_eval += len(sel)
         N, Ns = integral_normals(D[r0:r1, c0:c1], rows[sel] - r0, cols[sel] - c0, 0.5 * fx,
                                  cfg.patch_radius_m, moments)
@@ -666,6 +741,7 @@ def find_patches(cloud: np.ndarray, fx: float, fy: float, gravity_cam: np.ndarra
         don_all[sel], dong_all[sel] = don, dong
         n_don += int((don <= np.radians(cfg.max_don_deg)).sum())
         n_dong += int(ok.sum())
+        n_kept += int(ok.sum())
         kept.append(sel[ok])
     idx = np.concatenate(kept)[:cfg.max_seeds] if kept else np.zeros(0, np.int64)
     counts['normals_evaluated'] = int(n_eval)
@@ -679,9 +755,10 @@ def find_patches(cloud: np.ndarray, fx: float, fy: float, gravity_cam: np.ndarra
         times['stage4_ms'] = 0.0
         return _empty_patches(g, fix, counts, times)
     seed_pts = D[rows[idx], cols[idx]].astype(np.float64)
-    # Seed pixel of the downsampled image -> centre of its 2x2 block at full resolution.
+    # Seed pixel of the downsampled image -> centre of its 2x2 block at full resolution (in the
+    # band's rows).
     seeds_full = np.stack([2 * rows[idx] + 0.5, 2 * cols[idx] + 0.5], -1)
-    nb, mask = _sample_neighbourhoods(C, seeds_full, seed_pts, fx, fy, cfg, rng)
+    nb, mask = _sample_neighbourhoods(cloud, scale, seeds_full, seed_pts, fx, fy, cfg, rng)
     enough = mask.sum(1) >= cfg.min_neighbours
     counts['neighbourhoods'] = int(enough.sum())
     sel = idx[enough]
