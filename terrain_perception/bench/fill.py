@@ -37,6 +37,19 @@ the truth) is filled by the vectorised Fill-Terrain (library prebuilt, one threa
 and by the plain per-cell loop of ``test/fill_reference.py`` (on the 60 x 60 corner with
 ``--quick``); both give the same map, which is checked. ``speedup_vs_reference`` is the ratio
 of CPU times (robust on a shared machine); the wall-clock ratio is reported beside it.
+
+Node updates (:func:`node_sequence`): what ``terrain_fill_node`` does per ``/map/fine``. LittleDog
+walks +x from x = 0.4 m over ``rocks-6cm`` (seed 0, flat floor around it) taking a capture
+every 3 cm (40 captures, 12 with ``--quick``); a perfect range sensor (``visible_cells``, 1.5 m)
+feeds a 3 m x 3 m, 1 cm robot-centred grid that moves by whole cells like the mapper's
+(``mapping.FineHeightMap``, recentred beyond 0.5 m). Each map is passed with every capture pose
+so far to (1) the node's incremental :class:`~terrain_perception.fill.TerrainFiller` (default
+config), (2) a fresh filler per update (from-scratch recompute, same config) and (3) a fresh
+filler with ``blind_area: texture`` (what the node did before: bounds from every capture, the
+whole blind area textured), the last two on a subset of the updates. CPU times per update.
+Against the true terrain at the end: how many blind-area cells (never seen, no bound) the
+texture policy puts more than 1 cm off the truth, and the cost RMSE on observed cells with
+either policy.
 """
 
 from __future__ import annotations
@@ -365,6 +378,107 @@ def timing(truth: np.ndarray, library_maps: List[np.ndarray], fill_cfg: FillConf
 
 
 # --------------------------------------------------------------------------------------------
+# node updates over a walk
+# --------------------------------------------------------------------------------------------
+def walk_maps(n_captures: int, step_m: float = 0.03, x0_m: float = 0.4):
+    """(true GridMap on the 1 cm lattice, [(fine GridMap, T_map_camera) per capture]) of
+    LittleDog walking +x on rocks-6cm seed 0 with a perfect range sensor (see module doc)."""
+    from terrain_perception.mapping import FineHeightMap
+    from terrain_perception.raycast import HeightFieldScene, visible_cells
+    from terrain_perception.robot_model import load_robot_model
+    from terrain_perception.terrain import make_course
+    from terrain_perception.transforms import make_T
+    res = 0.01
+    course = make_course('rocks-6cm', 0, res)
+    h = np.zeros((600, 300), np.float32)        # x -1.5..4.5 m, y -1.5..1.5 m: floor around
+    i0 = int(round((course.origin_xy[0] + 1.5) / res))
+    j0 = int(round((course.origin_xy[1] + 1.5) / res))
+    h[i0:i0 + course.shape[0], j0:j0 + course.shape[1]] = course[ELEVATION]
+    truth = GridMap(res, (-1.5, -1.5), h.shape, {ELEVATION: h})
+    robot = load_robot_model('littledog')
+    scene = HeightFieldScene(truth, nthreads=1)
+    xs, ys = truth.cell_centers()
+    fine = FineHeightMap(res, (300, 300), (0.0, 0.0), 'mean')
+    half = 1.5
+    out = []
+    for k in range(n_captures):
+        x = x0_m + k * step_m
+        foot = truth.world_to_index(np.array([[x - 0.12, -0.05], [x + 0.12, 0.05]]))
+        ground = float(h[foot[0, 0]:foot[1, 0], foot[0, 1]:foot[1, 1]].mean())
+        T = make_T(np.eye(3), [x, 0.0, ground + robot.standing_height_m]) @ robot.T_base_camera
+        vis = visible_cells(truth, T, robot.camera, max_range_m=1.5, scene=scene)
+        ii, jj = np.nonzero(vis)
+        if k == 0:
+            fine.origin_xy = np.floor((np.array([x, 0.0]) - half) / res) * res
+        elif np.linalg.norm(np.array([x, 0.0]) - (fine.origin_xy + half)) > 0.5:
+            d = np.round((np.array([x, 0.0]) - fine.origin_xy - half) / res).astype(int)
+            fine.shift(int(d[0]), int(d[1]))
+        fine.add(np.c_[xs[ii], ys[jj], h[ii, jj]], 0.0)
+        out.append((fine.to_grid(stamp_s=float(k)), T))
+    return truth, out
+
+
+def node_sequence(quick: bool) -> dict:
+    """Per-update CPU time of the node's filler vs from-scratch recomputes; blind-area check."""
+    from dataclasses import replace
+
+    from terrain_perception.fill import FillerConfig, TerrainFiller
+    from terrain_perception.grid import COST, OBSERVED, UPPER_BOUND, crop_or_pad
+    from terrain_perception.terrain import library_terrains
+    n = 12 if quick else 40
+    truth, seq = walk_maps(n)
+    lib = [np.asarray(t[ELEVATION], np.float64)
+           for t in library_terrains(10, 0, 0.01, 0.06, cache_dir=REPO / 'build' / 'cache'
+                                     / 'fill_library')]
+    texture = replace(FillerConfig(), blind_area='texture')
+    inc = TerrainFiller(lib, 0.01)
+    t_inc, t_scr, t_tex, poses = [], [], [], []
+    every_scr, every_tex = (3, 6) if quick else (4, 8)
+    for k, (grid, T) in enumerate(seq):
+        poses.append(T)
+        P = np.array(poses)
+        c0 = time.process_time()
+        out = inc.update(grid, P)
+        t_inc.append(time.process_time() - c0)
+        if k % every_scr == every_scr - 1:
+            c0 = time.process_time()
+            TerrainFiller(lib, 0.01).update(grid, P)
+            t_scr.append(time.process_time() - c0)
+        if k % every_tex == every_tex - 1 or k == n - 1:
+            c0 = time.process_time()
+            tex = TerrainFiller(lib, 0.01, filler_config=texture).update(grid, P)
+            t_tex.append(time.process_time() - c0)
+    true_h = np.asarray(crop_or_pad(truth, out.origin_xy, out.shape)[ELEVATION], np.float64)
+    true_cost = cost_map(true_h, 0.01, CostConfig()).astype(np.float64)
+    obs = out[OBSERVED] > 0
+    blind = ~obs & np.isnan(out[UPPER_BOUND]) & np.isfinite(true_h)
+    bounded = ~obs & np.isfinite(out[UPPER_BOUND])
+    err_tex = np.abs(tex[ELEVATION][blind] - true_h[blind])
+
+    def rmse_obs(g):
+        return _rmse(np.asarray(g[COST], np.float64)[obs], true_cost[obs])
+
+    ms = lambda v, q=50: 1000.0 * float(np.percentile(v, q))  # noqa: E731
+    return {
+        'node_captures': n,
+        'node_update_ms_median': ms(t_inc), 'node_update_ms_p95': ms(t_inc, 95),
+        'node_update_ms_first': 1000.0 * t_inc[0],
+        'scratch_update_ms_median': ms(t_scr),
+        'scratch_texture_update_ms_median': ms(t_tex),
+        'node_speedup_vs_scratch_texture': float(np.median(t_tex) / np.median(t_inc)),
+        'blind_cells': int(blind.sum()), 'bounded_cells': int(bounded.sum()),
+        'observed_cells': int(obs.sum()),
+        'blind_unknown_cells': int(np.isnan(out[ELEVATION][blind]).sum()),
+        'blind_texture_off_1cm_fraction': float(np.mean(err_tex > 0.01)),
+        'blind_texture_rmse_m': _rmse(tex[ELEVATION][blind], true_h[blind]),
+        'bounded_fill_rmse_m': _rmse(np.asarray(out[ELEVATION], np.float64)[bounded],
+                                     true_h[bounded]),
+        'node_cost_rmse_observed': rmse_obs(out),
+        'node_cost_rmse_observed_texture': rmse_obs(tex),
+    }
+
+
+# --------------------------------------------------------------------------------------------
 # the suite
 # --------------------------------------------------------------------------------------------
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -511,6 +625,21 @@ def run(args: argparse.Namespace) -> dict:
     else:
         print('reference loop (test/fill_reference.py) not found: no speed-up measured')
 
+    nd = node_sequence(quick)
+    print(f'\nNode updates, LittleDog on rocks-6cm, {nd["node_captures"]} captures, 3 m grid at '
+          f'1 cm (CPU time per /map/fine): incremental {nd["node_update_ms_median"]:.0f} ms '
+          f'median (p95 {nd["node_update_ms_p95"]:.0f}, first {nd["node_update_ms_first"]:.0f}); '
+          f'from scratch {nd["scratch_update_ms_median"]:.0f} ms; from scratch with the blind '
+          f'area textured (the node before) {nd["scratch_texture_update_ms_median"]:.0f} ms '
+          f'({nd["node_speedup_vs_scratch_texture"]:.0f}x)')
+    print(f'blind area at the end: {nd["blind_cells"]} cells never seen and unbounded (left '
+          f'unknown: {nd["blind_unknown_cells"]}); textured, '
+          f'{100 * nd["blind_texture_off_1cm_fraction"]:.0f} % of them are > 1 cm off the '
+          f'truth (RMSE {1000 * nd["blind_texture_rmse_m"]:.1f} mm); {nd["bounded_cells"]} '
+          f'bounded cells filled with RMSE {1000 * nd["bounded_fill_rmse_m"]:.1f} mm; cost RMSE '
+          f'on observed cells {nd["node_cost_rmse_observed"]:.4f} (unknown) vs '
+          f'{nd["node_cost_rmse_observed_texture"]:.4f} (textured)')
+
     def clean(v):   # JSON has no NaN: metrics a method does not have become null
         if isinstance(v, dict):
             return {k: clean(x) for k, x in v.items()}
@@ -538,6 +667,7 @@ def run(args: argparse.Namespace) -> dict:
         'samples': fill_cfg.samples,
         'window_cells': fill_cfg.window_cells,
         'png': str(png),
+        **nd,
         'paper': {'methods': {m: dict(zip(metrics, v)) for m, v in PAPER_TABLE.items()},
                   'p_value_visible': PAPER_P},
     })
