@@ -398,6 +398,12 @@ def _rot_z(theta: np.ndarray) -> np.ndarray:
                      np.stack([z, z, o], -1)], -2)
 
 
+def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Row-wise cross products of (N, 3) arrays (np.cross spends most of its time on axes)."""
+    return np.stack([a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1], a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2],
+                     a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]], -1)
+
+
 def _residuals(q: np.ndarray, kx: np.ndarray, ky: np.ndarray) -> np.ndarray:
     return 0.5 * (kx[:, None] * q[..., 0] ** 2 + ky[:, None] * q[..., 1] ** 2) - q[..., 2]
 
@@ -438,9 +444,9 @@ def fit_paraboloids(points: np.ndarray, mask: np.ndarray, up: np.ndarray,
     n0[np.einsum('pi,pi->p', n0, up) < 0] *= -1.0
     # PCA frame with z = normal
     helper = np.where(np.abs(n0[:, :1]) < 0.9, np.array([1.0, 0, 0]), np.array([0, 1.0, 0]))
-    x0 = np.cross(helper, n0)
+    x0 = _cross(helper, n0)
     x0 /= np.linalg.norm(x0, axis=1, keepdims=True)
-    y0 = np.cross(n0, x0)
+    y0 = _cross(n0, x0)
     Rp = np.stack([x0, y0, n0], axis=-1)
     q = d @ Rp
     qx, qy, qz = q[..., 0], q[..., 1], q[..., 2]
@@ -455,7 +461,7 @@ def fit_paraboloids(points: np.ndarray, mask: np.ndarray, up: np.ndarray,
     # directions of its Hessian.
     tilt_n = np.stack([-dx, -dy, np.ones_like(dx)], -1)
     tilt_n /= np.linalg.norm(tilt_n, axis=1, keepdims=True)
-    axis = np.cross(np.array([0.0, 0.0, 1.0]), tilt_n)
+    axis = np.stack([-tilt_n[:, 1], tilt_n[:, 0], np.zeros(npatch)], -1)   # e_z x tilt_n
     s = np.linalg.norm(axis, axis=1, keepdims=True)
     ang = np.arctan2(s[:, 0], tilt_n[:, 2])
     Rt = _expmap(np.where(s > 1e-12, axis / np.where(s > 0, s, 1.0), 0.0) * ang[:, None])
@@ -466,23 +472,24 @@ def fit_paraboloids(points: np.ndarray, mask: np.ndarray, up: np.ndarray,
     ky = 2 * a * st * st - 2 * b * ct * st + 2 * cc * ct * ct
     h = f0 * np.cos(ang)
 
-    def local(R, h):
+    def local(d, R, h):
         q = d @ R
         q[..., 2] -= h[:, None]
         return q
 
-    def cost(R, h, kx, ky):
-        r = _residuals(local(R, h), kx, ky) * W
-        return (r * r).sum(1)
-
+    # LM on each patch until its own squared residual stops dropping by more than 0.1 % (or
+    # `iterations`); converged patches leave the batch, so later iterations are cheap.
+    ql = local(d, R, h)
+    r = _residuals(ql, kx, ky) * W
+    cur = (r * r).sum(1)
+    act = np.arange(npatch)
     lam = np.full(npatch, 1e-3)
-    ql = local(R, h)
-    cur = cost(R, h, kx, ky)
+    da, Wa = d, W
     for _ in range(iterations):
-        r = _residuals(ql, kx, ky) * W
+        Ra, kxa, kya, ha, lama, cura = R[act], kx[act], ky[act], h[act], lam[act], cur[act]
         qx, qy = ql[..., 0], ql[..., 1]
-        qz0 = ql[..., 2] + h[:, None]                    # q0 = R^T (p - c)
-        gx, gy = kx[:, None] * qx, ky[:, None] * qy       # g = d r / d q = (gx, gy, -1)
+        qz0 = ql[..., 2] + ha[:, None]                   # q0 = R^T (p - c)
+        gx, gy = kxa[:, None] * qx, kya[:, None] * qy     # g = d r / d q = (gx, gy, -1)
         J = np.empty(ql.shape[:2] + (6,))
         J[..., 0] = 0.5 * qx * qx
         J[..., 1] = 0.5 * qy * qy
@@ -491,30 +498,36 @@ def fit_paraboloids(points: np.ndarray, mask: np.ndarray, up: np.ndarray,
         J[..., 3] = -qx - gx * qz0
         J[..., 4] = gx * qy - gy * qx
         J[..., 5] = 1.0
-        J *= W[..., None]
+        J *= Wa[..., None]
         Jt = J.transpose(0, 2, 1)
         H = Jt @ J
         grad = (Jt @ r[..., None])[..., 0]
-        diag = np.einsum('pii->pi', H)
-        Hd = H + (lam[:, None] * np.maximum(diag, 1e-12))[:, :, None] * np.eye(6)
-        step = -np.linalg.solve(Hd, grad[..., None])[..., 0]
-        R_new = R @ _expmap(step[:, 2:5])
-        kx_new, ky_new, h_new = kx + step[:, 0], ky + step[:, 1], h + step[:, 5]
-        new = cost(R_new, h_new, kx_new, ky_new)
-        ok = new < cur
-        gain = np.where(ok, cur - new, 0.0)
-        if not np.any(gain > 1e-3 * cur):      # converged everywhere: stop early
+        dg = np.arange(6)
+        H[:, dg, dg] *= 1.0 + lama[:, None]              # LM damping lam * diag(H)
+        H[:, dg, dg] += 1e-12 * lama[:, None]
+        step = -np.linalg.solve(H, grad[..., None])[..., 0]
+        R_new = Ra @ _expmap(step[:, 2:5])
+        kx_new, ky_new, h_new = kxa + step[:, 0], kya + step[:, 1], ha + step[:, 5]
+        ql_new = local(da, R_new, h_new)
+        r_new = _residuals(ql_new, kx_new, ky_new) * Wa
+        new = (r_new * r_new).sum(1)
+        ok = new < cura
+        R[act[ok]], kx[act[ok]], ky[act[ok]], h[act[ok]] = (R_new[ok], kx_new[ok], ky_new[ok],
+                                                            h_new[ok])
+        cur[act[ok]] = new[ok]
+        lam[act] = np.clip(np.where(ok, lama * 0.1, lama * 10.0), 1e-9, 1e9)
+        go = ~ok | (cura - new > 1e-3 * cura)            # rejected steps retry with more damping
+        go &= lam[act] < 1e9
+        if not go.any():
             break
-        R = np.where(ok[:, None, None], R_new, R)
-        kx, ky, h = np.where(ok, kx_new, kx), np.where(ok, ky_new, ky), np.where(ok, h_new, h)
-        cur = np.where(ok, new, cur)
-        lam = np.clip(np.where(ok, lam * 0.1, lam * 10.0), 1e-9, 1e9)
-        ql = local(R, h)
+        ql = np.where(ok[:, None, None], ql_new, ql)[go]
+        r = np.where(ok[:, None], r_new, r)[go]
+        act, da, Wa = act[go], da[go], Wa[go]
     # Order kx <= ky: swap by a +90 deg turn about the normal (x' = y, y' = -x).
     swap = kx > ky
     R = np.where(swap[:, None, None], R @ _rot_z(np.full(npatch, np.pi / 2)), R)
     kx, ky = np.where(swap, ky, kx), np.where(swap, kx, ky)
-    ql = local(R, h)
+    ql = local(d, R, h)
     r = _residuals(ql, kx, ky)
     gn = np.sqrt((kx[:, None] * ql[..., 0]) ** 2 + (ky[:, None] * ql[..., 1]) ** 2 + 1.0)
     rms_alg = np.sqrt(((r * W) ** 2).sum(1) / cnt)
