@@ -90,13 +90,13 @@ def _check_cloud(cloud: np.ndarray) -> np.ndarray:
     return np.asarray(cloud, dtype=np.float32)
 
 
-def _bilateral_scale(cloud: np.ndarray, cfg: PatchConfig) -> np.ndarray:
-    """Step 3 as a per-pixel factor ``(H, W)``: filtered depth / raw depth (NaN where invalid).
+def _bilateral_scale(z: np.ndarray, cfg: PatchConfig) -> np.ndarray:
+    """Step 3 on the depth image ``z`` ``(H, W)`` as a per-pixel factor: filtered depth / raw
+    depth (NaN where invalid).
 
     Only the depth image (z) is filtered; multiplying a point by its factor moves it along its
     pixel ray to the new depth. Invalid (NaN or z <= 0) points are set to 0 m before filtering,
     far outside the range sigma, so they do not bleed into valid ones."""
-    z = np.ascontiguousarray(cloud[..., 2])
     with np.errstate(invalid='ignore'):
         valid = z > 0                      # False for NaN
     z0 = np.where(valid, z, np.float32(0.0))
@@ -116,7 +116,7 @@ def bilateral_filter_cloud(cloud: np.ndarray, cfg: PatchConfig) -> np.ndarray:
     bleed into valid ones: they are set to 0 m before filtering, far outside the range sigma.
     """
     cloud = _check_cloud(cloud)
-    return cloud * _bilateral_scale(cloud, cfg)[..., None]
+    return cloud * _bilateral_scale(np.ascontiguousarray(cloud[..., 2]), cfg)[..., None]
 
 
 def _median_2x2_planes(planes) -> np.ndarray:
@@ -163,10 +163,11 @@ def median_downsample_2x2(cloud: np.ndarray) -> np.ndarray:
     return _median_2x2_planes([np.ascontiguousarray(cloud[:h, :w, k]) for k in range(3)])
 
 
-def _filter_and_downsample(cloud: np.ndarray, cfg: PatchConfig):
+def _filter_and_downsample(cloud: np.ndarray, z: np.ndarray, cfg: PatchConfig):
     """Steps 3-4 without materialising the filtered full-resolution cloud: returns ``D`` and the
-    step-3 factor (filtered cloud = ``cloud * scale[..., None]``, needed only at step 11)."""
-    scale = _bilateral_scale(cloud, cfg)
+    step-3 factor (filtered cloud = ``cloud * scale[..., None]``, needed only at step 11).
+    ``z``: the cloud's depth plane, contiguous."""
+    scale = _bilateral_scale(z, cfg)
     h, w = cloud.shape[0] // 2 * 2, cloud.shape[1] // 2 * 2
     s = scale[:h, :w]
     planes = [np.multiply(cloud[:h, :w, k], s) for k in range(3)]
@@ -282,8 +283,13 @@ class IntegralMoments:
         r1 = np.clip(rows + half + 1, 0, h)
         c0 = np.clip(cols - half, 0, w)
         c1 = np.clip(cols + half + 1, 0, w)
-        s = np.concatenate([ii[r1, c1] - ii[r0, c1] - ii[r1, c0] + ii[r0, c0]
-                            for ii in self.ii], axis=1)
+        corners = np.stack([r1 * (w + 1) + c1, r0 * (w + 1) + c0,
+                            r0 * (w + 1) + c1, r1 * (w + 1) + c0])
+        s = []
+        for ii in self.ii:
+            v = np.take(ii.reshape(-1, ii.shape[-1]), corners, axis=0)
+            s.append(v[0] + v[1] - v[2] - v[3])
+        s = np.concatenate(s, axis=1)
         n = s[:, 0]
         m = s[:, 1:] / np.maximum(n, 1.0)[:, None]     # xy, xz, yz, x, y, z, xx, yy, zz
         mx, my, mz = m[:, 3], m[:, 4], m[:, 5]
@@ -614,8 +620,8 @@ def _empty_patches(gravity, fixation, counts, timings) -> PatchSet:
                     np.zeros(0, np.int64), gravity, fixation, counts, timings)
 
 
-def _seed_band(cloud: np.ndarray, fix: np.ndarray, fx: float, fy: float, cfg: PatchConfig):
-    """The full-resolution rows ``[a, b)`` (even) that steps 3-11 can read, and which of the
+def _seed_band(z: np.ndarray, fix: np.ndarray, fx: float, fy: float, cfg: PatchConfig):
+    """Of the depth image ``z`` (even height), the full-resolution rows ``[a, b)`` (even) that steps 3-11 can read, and which of the
     downsampled rows in them can hold a seed; ``None`` when no row can.
 
     Exact, not a heuristic: a filtered depth is a convex combination of the valid raw depths in
@@ -625,16 +631,20 @@ def _seed_band(cloud: np.ndarray, fix: np.ndarray, fx: float, fy: float, cfg: Pa
     Around those rows steps 7 and 11 read windows of ``r f / z`` rows (largest at the nearest
     depth a seed there can have), plus k rows so the filter is exact where it is read. Rows the
     robot's camera sees far beyond the fixation point are thus never filtered."""
-    H = cloud.shape[0] // 2 * 2
-    z = np.ascontiguousarray(cloud[:H, :, 2])
+    H = z.shape[0]
     with np.errstate(invalid='ignore'):
-        valid = z > 0
+        zmin = np.fmin.reduce(z, axis=1, initial=np.inf)   # NaN (invalid) ignored
+        zmax = np.fmax.reduce(z, axis=1, initial=0.0)      # (z <= 0 is invalid as well)
+    # Downsampled row i reads full rows 2i - k .. 2i + 1 + k: row pairs i - m .. i + m.
+    pmin = np.minimum(zmin[0::2], zmin[1::2])
+    pmax = np.maximum(zmax[0::2], zmax[1::2])
+    wmin, wmax = pmin.copy(), pmax.copy()
     k = cfg.bilateral_window_px // 2
-    zmin = np.pad(np.where(valid, z, np.inf).min(1), k, constant_values=np.inf)
-    zmax = np.pad(np.where(valid, z, -np.inf).max(1), k, constant_values=-np.inf)
-    win = np.lib.stride_tricks.sliding_window_view
-    wmin = win(zmin, 2 + 2 * k)[0::2].min(1)
-    wmax = win(zmax, 2 + 2 * k)[0::2].max(1)
+    for j in range(1, (k + 1) // 2 + 1):
+        np.minimum(wmin[j:], pmin[:-j], out=wmin[j:])
+        np.minimum(wmin[:-j], pmin[j:], out=wmin[:-j])
+        np.maximum(wmax[j:], pmax[:-j], out=wmax[j:])
+        np.maximum(wmax[:-j], pmax[j:], out=wmax[:-j])
     R = cfg.roi_radius_m * (1.0 + 1e-6) + 1e-6     # float32 rounding
     cand = (wmax >= fix[2] - R) & (wmin <= fix[2] + R)
     i = np.nonzero(cand)[0]
@@ -664,9 +674,12 @@ def _sample_neighbourhoods(cloud: np.ndarray, scale: np.ndarray, seeds_rc_full: 
     dv = (rng.random((ns, k)) * 2.0 - 1.0) * hv
     rr = np.clip(np.rint(seeds_rc_full[:, :1] + dv), 0, h - 1).astype(np.int64)
     cc = np.clip(np.rint(seeds_rc_full[:, 1:] + du), 0, w - 1).astype(np.int64)
-    pts = cloud[rr, cc].astype(np.float64) * scale[rr, cc][..., None]
-    d2 = ((pts - seed_pts[:, None]) ** 2).sum(-1)
-    ok = np.isfinite(d2) & (d2 <= r * r)
+    flat = rr * w + cc
+    pts = np.take(cloud.reshape(-1, 3), flat, axis=0).astype(np.float64)
+    pts *= np.take(scale.reshape(-1), flat)[..., None]
+    dd = pts - seed_pts[:, None]
+    d2 = np.einsum('ijk,ijk->ij', dd, dd)
+    ok = d2 <= r * r                                   # False for NaN
     rank = np.cumsum(ok, axis=1)
     ok &= rank <= nf
     # Compact the first n_f accepted draws of every row to the front.
@@ -707,14 +720,15 @@ def find_patches(cloud: np.ndarray, fx: float, fy: float, gravity_cam: np.ndarra
     times: Dict[str, float] = {}
     # Stage I, on the rows that the later steps can read (see _seed_band)
     cloud = _check_cloud(cloud)
-    band = _seed_band(cloud, fix, fx, fy, cfg)
+    z = np.ascontiguousarray(cloud[:cloud.shape[0] // 2 * 2, :, 2])
+    band = _seed_band(z, fix, fx, fy, cfg)
     if band is None:
         counts['valid_points'] = counts['dtfp'] = counts['seeds'] = 0
         times.update(stage1_ms=1e3 * (clock() - t0), stage23_ms=0.0, stage4_ms=0.0)
         return _empty_patches(g, fix, counts, times)
     a, b, cand = band
     cloud = cloud[a:b]
-    D, scale = _filter_and_downsample(cloud, cfg)
+    D, scale = _filter_and_downsample(cloud, z[a:b], cfg)
     t1 = clock()
     times['stage1_ms'] = 1e3 * (t1 - t0)
     # Stage II: seeds within R of the fixation point
