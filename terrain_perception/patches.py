@@ -262,8 +262,9 @@ class IntegralMoments:
         sub = cloud[::4, ::4][valid[::4, ::4]]
         sub = sub if len(sub) else cloud[valid]
         self.offset = sub.mean(axis=0, dtype=np.float64) if len(sub) else np.zeros(3)
-        p = np.where(valid[..., None], cloud - self.offset.astype(np.float32), np.float32(0.0))
-        x, y, z = cv2.split(p)
+        x, y, z = [np.where(valid, c - np.float32(o), np.float32(0.0))
+                   for c, o in zip(cv2.split(cloud), self.offset)]
+        p = cv2.merge([x, y, z])
         cross = cv2.merge([valid.astype(np.float32), x * y, x * z, y * z])
         # OpenCV's integral is one C pass per image (4 channels max), ~20x numpy's two cumsums;
         # integral2 gives the sums and the squares in one pass.
@@ -378,22 +379,21 @@ class ParaboloidFit:
 
 def _expmap(w: np.ndarray) -> np.ndarray:
     """Rodrigues: rotation matrices ``(..., 3, 3)`` of rotation vectors ``(..., 3)``."""
-    th = np.sqrt((w * w).sum(-1))
-    small = th < 1e-8
-    ths = np.where(small, 1.0, th)
+    th2 = (w * w).sum(-1)
+    small = th2 < 1e-16
+    ths = np.sqrt(np.where(small, 1.0, th2))
     a = np.where(small, 1.0, np.sin(ths) / ths)
-    b = np.where(small, 0.5, (1.0 - np.cos(ths)) / ths ** 2)
-    x, y, z = w[..., 0], w[..., 1], w[..., 2]
-    R = np.empty(w.shape[:-1] + (3, 3))
-    R[..., 0, 0] = 1.0 - b * (y * y + z * z)
-    R[..., 1, 1] = 1.0 - b * (x * x + z * z)
-    R[..., 2, 2] = 1.0 - b * (x * x + y * y)
-    R[..., 0, 1] = -a * z + b * x * y
-    R[..., 1, 0] = a * z + b * x * y
-    R[..., 0, 2] = a * y + b * x * z
-    R[..., 2, 0] = -a * y + b * x * z
-    R[..., 1, 2] = -a * x + b * y * z
-    R[..., 2, 1] = a * x + b * y * z
+    b = np.where(small, 0.5, (1.0 - np.cos(ths)) / (ths * ths))
+    # R = I + a [w]x + b [w]x^2, with [w]x^2 = w w^T - |w|^2 I
+    R = (b[..., None, None] * w[..., :, None]) * w[..., None, :]
+    R.reshape(-1, 9)[:, ::4] += (1.0 - b * th2).reshape(-1, 1)
+    aw = a[..., None] * w
+    R[..., 0, 1] -= aw[..., 2]
+    R[..., 1, 0] += aw[..., 2]
+    R[..., 0, 2] += aw[..., 1]
+    R[..., 2, 0] -= aw[..., 1]
+    R[..., 1, 2] -= aw[..., 0]
+    R[..., 2, 1] += aw[..., 0]
     return R
 
 
@@ -508,9 +508,9 @@ def fit_paraboloids(points: np.ndarray, mask: np.ndarray, up: np.ndarray,
         Jt = J.transpose(0, 2, 1)
         H = Jt @ J
         grad = (Jt @ r[..., None])[..., 0]
-        dg = np.arange(6)
-        H[:, dg, dg] *= 1.0 + lama[:, None]              # LM damping lam * diag(H)
-        H[:, dg, dg] += 1e-12 * lama[:, None]
+        diag = H.reshape(-1, 36)[:, ::7]                 # view of the diagonals
+        diag *= 1.0 + lama[:, None]                      # LM damping lam * diag(H)
+        diag += 1e-12 * lama[:, None]
         step = -np.linalg.solve(H, grad[..., None])[..., 0]
         R_new = Ra @ _expmap(step[:, 2:5])
         kx_new, ky_new, h_new = kxa + step[:, 0], kya + step[:, 1], ha + step[:, 5]
@@ -521,7 +521,7 @@ def fit_paraboloids(points: np.ndarray, mask: np.ndarray, up: np.ndarray,
         R[act[ok]], kx[act[ok]], ky[act[ok]], h[act[ok]] = (R_new[ok], kx_new[ok], ky_new[ok],
                                                             h_new[ok])
         cur[act[ok]] = new[ok]
-        lam[act] = np.clip(np.where(ok, lama * 0.1, lama * 10.0), 1e-9, 1e9)
+        lam[act] = np.minimum(np.maximum(np.where(ok, lama * 0.1, lama * 10.0), 1e-9), 1e9)
         go = ~ok | (cura - new > 1e-3 * cura)            # rejected steps retry with more damping
         go &= lam[act] < 1e9
         if not go.any():
