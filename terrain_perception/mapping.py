@@ -53,6 +53,21 @@ class MapperConfig:
     min_range_m: float = param(0.05, 'nearest z-depth [m] of a cloud point used', 0.0, 10.0)
     max_range_m: float = param(1.5, 'farthest z-depth [m] of a cloud point used', 0.1, 20.0)
     min_points: int = param(200, 'fewest valid points a cloud needs', 10, 10_000_000)
+    # ---- depth noise (stereo: Z = f b / d, so a disparity error sigma_d gives
+    # sigma_z = Z^2 sigma_d / (f b); f b comes from the camera, see IcpMapper)
+    disparity_sigma_px: float = param(0.0, 'disparity noise [px] of the stereo clouds; points '
+                                      'weigh 1 / (sigma_z^2 + depth_sigma_floor_m^2) in the '
+                                      'fine map and the degeneracy check (0 = equal weights; '
+                                      'off by default: weights from the measured depth favour '
+                                      'points measured too near, see the YAML)', 0.0, 10.0)
+    depth_sigma_floor_m: float = param(0.003, 'range-independent height noise [m] (pose error, '
+                                       'cell quantisation) added in quadrature to sigma_z; keeps '
+                                       'the nearest points from outweighing all others',
+                                       1e-5, 1.0)
+    fine_max_range_m: float = param(1.5, 'farthest z-depth [m] of a point fused into the fine '
+                                    'map (later captures see the same ground closer)', 0.1, 20.0)
+    icp_max_range_m: float = param(1.5, 'farthest z-depth [m] of an ICP source point', 0.1,
+                                   20.0)
     # ---- coarse model / ICP
     coarse_stride_px: int = param(8, 'pixel stride sub-sampling an organized cloud for ICP',
                                   1, 64)
@@ -84,6 +99,11 @@ class MapperConfig:
     degeneracy_threshold: float = param(5e-4, 'keep the prior along directions whose normalised '
                                         'point-to-plane information is below this (0 = off)',
                                         0.0, 1.0)
+    degeneracy_noise_gain: float = param(1.0, 'also keep the prior where the information is '
+                                         'below this x (rmse / normal_radius_m)^2: the slope '
+                                         'noise that height noise of the alignment\'s '
+                                         'residual size puts into the model normals (0 = off)',
+                                         0.0, 100.0)
     # ---- guards
     min_fitness: float = param(0.3, 'reject an alignment matching fewer source points than '
                                'this fraction', 0.0, 1.0)
@@ -149,9 +169,12 @@ class MapperUpdate:
             correspondences (both NaN for the first capture).
         correction_m, correction_deg: ICP pose minus prior (body position [m], rotation [deg]).
         n_source, n_model: ICP source points and coarse-model points.
-        n_degenerate: directions (of 6) the geometry did not constrain; kept at the prior.
+        n_degenerate: directions (of 6) the geometry did not constrain; kept at the prior
+            (a partial update when 0 < n_degenerate < 6).
         min_information: smallest eigenvalue of the normalised point-to-plane information
             (see :func:`remove_degenerate_motion`); near 0 = a direction is unconstrained.
+        information_limit: the eigenvalue a direction needed to be corrected (the larger of
+            ``degeneracy_threshold`` and the noise floor from the residual).
     """
 
     accepted: bool
@@ -169,6 +192,7 @@ class MapperUpdate:
     n_model: int = 0
     n_degenerate: int = 0
     min_information: float = float('nan')
+    information_limit: float = float('nan')
 
 
 def _check_T(T: np.ndarray, name: str) -> np.ndarray:
@@ -329,8 +353,27 @@ class OdometryGate:
         self._last = (float(stamp_s), T)
 
 
+def depth_weights(z_m: np.ndarray, focal_baseline_px_m: Optional[float],
+                  disparity_sigma_px: float, floor_m: float) -> np.ndarray:
+    """Inverse variances [1/m^2] of points at z-depths ``z_m`` [m] of a stereo camera.
+
+    Triangulation gives ``Z = f b / d``, so a disparity error ``sigma_d`` [px] becomes
+    ``sigma_z = Z^2 sigma_d / (f b)``; ``floor_m`` is added in quadrature for the errors that
+    do not grow with range. How much of a depth error becomes height error depends on the ray
+    and on the local slope (unknown when fusing); it is left out (scaling the weights by the
+    ray's vertical part alone over-trusts grazing rays on sloped ground). All weights are 1
+    when ``focal_baseline_px_m`` is None or ``disparity_sigma_px`` is 0.
+    """
+    z = np.asarray(z_m, dtype=np.float64)
+    if not focal_baseline_px_m or disparity_sigma_px <= 0:
+        return np.ones(z.shape)
+    sz = z * z * (disparity_sigma_px / focal_baseline_px_m)
+    return 1.0 / (sz * sz + floor_m * floor_m)
+
+
 def remove_degenerate_motion(T_icp: np.ndarray, T_prior: np.ndarray, points: np.ndarray,
-                             normals: np.ndarray, threshold: float
+                             normals: np.ndarray, threshold: float,
+                             weights: Optional[np.ndarray] = None
                              ) -> Tuple[np.ndarray, np.ndarray, int]:
     """Keep only the part of an ICP correction that the geometry constrains.
 
@@ -338,9 +381,10 @@ def remove_degenerate_motion(T_icp: np.ndarray, T_prior: np.ndarray, points: np.
     component (flat ground: x, y, yaw), and the solver then drifts there freely. The correction
     ``T_icp`` relative to ``T_prior`` (rotation about the prior's origin, translation) is
     projected onto the eigenvectors of the point-to-plane information matrix
-    ``H = mean(J_i^T J_i)``, ``J_i = [((p_i - c) x n_i) / L, n_i]`` (rotation made unitless by
-    the cloud's RMS lever arm ``L``), whose eigenvalues reach ``threshold``; in the other
-    directions the prior is kept (solution remapping, Zhang et al., ICRA 2016).
+    ``H = sum(w_i J_i^T J_i) / sum(w_i)``, ``J_i = [((p_i - c) x n_i) / L, n_i]`` (rotation
+    made unitless by the cloud's weighted RMS lever arm ``L``), whose eigenvalues reach
+    ``threshold``; in the other directions the prior is kept (solution remapping, Zhang et al.,
+    ICRA 2016). On a flat approach only z, roll and pitch survive.
 
     Args:
         T_icp, T_prior: 4x4 poses of the same frame (map <- sensor).
@@ -348,15 +392,19 @@ def remove_degenerate_motion(T_icp: np.ndarray, T_prior: np.ndarray, points: np.
             normals ``(N, 3)``.
         threshold: smallest eigenvalue [-] (H is normalised, eigenvalues in [0, 1]) a
             direction needs to be corrected.
+        weights: ``(N,)`` per-point weights (inverse variances, :func:`depth_weights`), so
+            that noisy far points do not fake constraints; None = equal.
 
     Returns:
         ``(T, eigenvalues (6,) ascending, number of directions left at the prior)``.
     """
     c = T_prior[:3, 3]
     d = points - c
-    L = float(np.sqrt(np.mean(np.sum(d * d, axis=1)))) or 1.0
+    w = np.ones(len(d)) if weights is None else np.asarray(weights, dtype=np.float64)
+    w = w / w.sum()
+    L = float(np.sqrt(w @ np.sum(d * d, axis=1))) or 1.0
     J = np.hstack([np.cross(d, normals) / L, normals])
-    H = J.T @ J / len(J)
+    H = (J * w[:, None]).T @ J
     w, V = np.linalg.eigh(H)
     good = w >= threshold
     if good.all():
@@ -443,10 +491,14 @@ class FineHeightMap:
         outlier_gate_m: samples of one :meth:`add` farther than this [m] from their cell's
             mean in that batch (computed twice, the second time without the first pass's
             outliers) are dropped (0 = keep all).
+
+    Samples may carry weights (inverse variances, :func:`depth_weights`): the mean, the
+    plane and the variance are then weighted (``w`` holds the sum of weights per cell); ``n``
+    stays the sample count. Unit weights give the plain statistics.
     """
 
-    _STATS = ('n', 'mean', 'm2', 'min', 'max', 'last', 'sx', 'sy', 'sxx', 'sxy', 'syy', 'sxz',
-              'syz')
+    _STATS = ('n', 'w', 'mean', 'm2', 'min', 'max', 'last', 'sx', 'sy', 'sxx', 'sxy', 'syy',
+              'sxz', 'syz')
 
     def __init__(self, resolution_m: float, shape: Tuple[int, int],
                  origin_xy: Tuple[float, float], estimator: str = 'mean',
@@ -468,8 +520,10 @@ class FineHeightMap:
     def nbytes(self) -> int:
         return int(sum(a.nbytes for a in self.s.values()))
 
-    def add(self, points_map: np.ndarray, stamp_s: float) -> int:
-        """Fuse map-frame points ``(N, 3)`` [m]; returns how many fell on the window."""
+    def add(self, points_map: np.ndarray, stamp_s: float,
+            weights: Optional[np.ndarray] = None) -> int:
+        """Fuse map-frame points ``(N, 3)`` [m] with optional weights ``(N,)`` (> 0, e.g.
+        inverse height variances [1/m^2]; None = all 1); returns how many fell on the window."""
         r = self.resolution_m
         f = (points_map[:, :2] - self.origin_xy) / r
         ij = np.floor(f).astype(np.int64)
@@ -478,6 +532,7 @@ class FineHeightMap:
         if not np.any(ok):
             return 0
         ij, f, z = ij[ok], f[ok], points_map[ok, 2]
+        wt = np.ones(len(z)) if weights is None else np.asarray(weights, np.float64)[ok]
         lin = ij[:, 0] * self.shape[1] + ij[:, 1]
         size = self.shape[0] * self.shape[1]
         if self.outlier_gate_m > 0:
@@ -485,11 +540,11 @@ class FineHeightMap:
             # twice, so that a gross outlier's pull on the first mean is undone
             keep = np.ones(len(z), bool)
             for _ in range(2):
-                cnt = np.bincount(lin, weights=keep, minlength=size)
+                cnt = np.bincount(lin, weights=wt * keep, minlength=size)
                 with np.errstate(invalid='ignore', divide='ignore'):
-                    mean = np.bincount(lin, weights=z * keep, minlength=size) / cnt
+                    mean = np.bincount(lin, weights=wt * z * keep, minlength=size) / cnt
                 keep = np.abs(z - mean[lin]) <= self.outlier_gate_m
-            lin, z, f, ij = lin[keep], z[keep], f[keep], ij[keep]
+            lin, z, f, ij, wt = lin[keep], z[keep], f[keep], ij[keep], wt[keep]
             if len(z) == 0:
                 return 0
         # full-length bincounts (no sort), then merge only the touched cells
@@ -501,38 +556,41 @@ class FineHeightMap:
         # offsets from the cell centre [m] for the per-cell plane
         dx = (f[:, 0] - ij[:, 0] - 0.5) * r
         dy = (f[:, 1] - ij[:, 1] - 0.5) * r
-        S = np.stack([np.bincount(lin, weights=w, minlength=size)[cells] for w in
-                      (zs, zs * zs, dx, dy, dx * dx, dx * dy, dy * dy, dx * zs, dy * zs)], 1)
+        S = np.stack([np.bincount(lin, weights=wt * v, minlength=size)[cells] for v in
+                      (np.ones_like(zs), zs, zs * zs, dx, dy, dx * dx, dx * dy, dy * dy,
+                       dx * zs, dy * zs)], 1)
         zmin_all = np.full(size, np.inf)
         zmax_all = np.full(size, -np.inf)
         np.minimum.at(zmin_all, lin, z)
         np.maximum.at(zmax_all, lin, z)
         zmin, zmax = zmin_all[cells], zmax_all[cells]
-        mb_rel = S[:, 0] / nb
+        wb = S[:, 0]
+        mb_rel = S[:, 1] / wb
         mb = mb_rel + z0
-        m2b = np.maximum(S[:, 1] - nb * mb_rel * mb_rel, 0.0)
-        bx, by = S[:, 2], S[:, 3]
-        # sums of dx (z - batch mean), dy (z - batch mean)
-        bxz = S[:, 7] - mb_rel * bx
-        byz = S[:, 8] - mb_rel * by
+        m2b = np.maximum(S[:, 2] - wb * mb_rel * mb_rel, 0.0)
+        bx, by = S[:, 3], S[:, 4]
+        # weighted sums of dx (z - batch mean), dy (z - batch mean)
+        bxz = S[:, 8] - mb_rel * bx
+        byz = S[:, 9] - mb_rel * by
         s = {k: a.reshape(-1) for k, a in self.s.items()}
-        na, ma = s['n'][cells], s['mean'][cells]
-        n = na + nb
+        wa, ma = s['w'][cells], s['mean'][cells]
+        w = wa + wb
         delta = mb - ma
         # plane sums are kept about the running mean: shift old sums to the new mean
-        new_mean = ma + delta * nb / n
+        new_mean = ma + delta * wb / w
         shift_a = ma - new_mean
         shift_b = mb - new_mean
         s['sxz'][cells] += shift_a * s['sx'][cells] + bxz + shift_b * bx
         s['syz'][cells] += shift_a * s['sy'][cells] + byz + shift_b * by
         s['sx'][cells] += bx
         s['sy'][cells] += by
-        s['sxx'][cells] += S[:, 4]
-        s['sxy'][cells] += S[:, 5]
-        s['syy'][cells] += S[:, 6]
-        s['m2'][cells] += m2b + delta ** 2 * na * nb / n
+        s['sxx'][cells] += S[:, 5]
+        s['sxy'][cells] += S[:, 6]
+        s['syy'][cells] += S[:, 7]
+        s['m2'][cells] += m2b + delta ** 2 * wa * wb / w
         s['mean'][cells] = new_mean
-        s['n'][cells] = n
+        s['w'][cells] = w
+        s['n'][cells] += nb
         s['min'][cells] = np.minimum(s['min'][cells], zmin)
         s['max'][cells] = np.maximum(s['max'][cells], zmax)
         s['last'][cells] = stamp_s
@@ -548,7 +606,7 @@ class FineHeightMap:
             return h
         # normal equations of z - mean = c + gx dx + gy dy (c: offset from the mean)
         with np.errstate(divide='ignore', invalid='ignore'):
-            nn = np.where(seen, n, 1.0)
+            nn = np.where(seen, s['w'], 1.0)
             mx, my = s['sx'] / nn, s['sy'] / nn
             cxx = s['sxx'] / nn - mx * mx
             cxy = s['sxy'] / nn - mx * my
@@ -590,7 +648,7 @@ class FineHeightMap:
         count, last_seen (NaN where empty; observed is 1/0)."""
         s = self.s
         seen = s['n'] > 0
-        nn = np.where(seen, s['n'], 1.0)
+        nn = np.where(seen, s['w'], 1.0)
         nan = np.float32(np.nan)
         layers = {
             ELEVATION: self.heights().astype(np.float32),
@@ -611,15 +669,22 @@ class IcpMapper:
     Args:
         config: parameters.
         T_base_camera: camera mount, ``T_base_link_camera_optical`` (4x4, robot profile).
+        focal_baseline_px_m: the stereo camera's focal length [px] times its baseline [m]
+            (robot profile); with ``config.disparity_sigma_px`` it sets each point's depth noise
+            (:func:`depth_weights`). None: every point weighs the same (e.g. a range sensor).
 
     Typical use: ``update(cloud_camera, T_odom_base, stamp_s)`` per capture, then
     ``fine_grid()``, ``coarse_points()``, ``capture_poses()``; ``T_map_odom`` is the
     correction to re-anchor dead reckoning.
     """
 
-    def __init__(self, config: MapperConfig, T_base_camera: np.ndarray) -> None:
+    def __init__(self, config: MapperConfig, T_base_camera: np.ndarray,
+                 focal_baseline_px_m: Optional[float] = None) -> None:
         self.config = config
         self.T_base_camera = _check_T(T_base_camera, 'T_base_camera')
+        if focal_baseline_px_m is not None and not focal_baseline_px_m > 0:
+            raise ValueError(f'focal_baseline_px_m must be positive, got {focal_baseline_px_m}')
+        self.focal_baseline_px_m = focal_baseline_px_m
         self.T_map_odom = np.eye(4)
         self.counters: collections.Counter = collections.Counter()
         r = config.fine_resolution_m
@@ -692,10 +757,11 @@ class IcpMapper:
         if len(fine) < c.min_points:
             raise ValueError(f'cloud has only {len(fine)} valid points (min_points='
                              f'{c.min_points})')
+        icp_max = min(c.max_range_m, c.icp_max_range_m)
         if coarse_camera is not None and np.asarray(coarse_camera).size > 0:
-            src = valid_points(coarse_camera, c.min_range_m, c.max_range_m)
+            src = valid_points(coarse_camera, c.min_range_m, icp_max)
         else:
-            src = valid_points(cloud, c.min_range_m, c.max_range_m, c.coarse_stride_px)
+            src = valid_points(cloud, c.min_range_m, icp_max, c.coarse_stride_px)
         if len(src) < 10:
             raise ValueError(f'coarse cloud has only {len(src)} valid points')
         return fine, src
@@ -796,14 +862,18 @@ class IcpMapper:
         # of the metric being minimised, so recompute point-to-plane over the correspondences
         corr = np.asarray(reg.correspondence_set)
         n_degenerate = 0
-        min_info = float('nan')
-        if len(corr) >= 6:
+        min_info = info_limit = float('nan')
+        if len(corr) >= 6 and (c.degeneracy_threshold > 0 or c.degeneracy_noise_gain > 0):
+            src_pts = np.asarray(src.points)[corr[:, 0]]
+            # information below what noise alone puts into the normals is not geometry
+            noise_slope = self._plane_rmse(src, T_cam, corr) / c.normal_radius_m
+            info_limit = max(c.degeneracy_threshold, c.degeneracy_noise_gain * noise_slope ** 2)
             T_cam, eig, n_degenerate = remove_degenerate_motion(
-                T_cam, T_cam_prior, transform_points(T_cam, np.asarray(src.points)[corr[:, 0]]),
-                np.asarray(self._model.normals)[corr[:, 1]], c.degeneracy_threshold)
+                T_cam, T_cam_prior, transform_points(T_cam, src_pts),
+                np.asarray(self._model.normals)[corr[:, 1]], info_limit,
+                depth_weights(src_pts[:, 2], self.focal_baseline_px_m, c.disparity_sigma_px,
+                              c.depth_sigma_floor_m))
             min_info = float(eig[0])
-            if n_degenerate:
-                self.counters['degenerate_alignments'] += 1
         rmse = self._plane_rmse(src, T_cam, corr)
         T_base = T_cam @ invert(self.T_base_camera)
         corr_m = float(np.linalg.norm(T_base[:3, 3] - T_prior[:3, 3]))
@@ -835,13 +905,17 @@ class IcpMapper:
         upd = MapperUpdate(not reason, False, reason, T_base, T_cam, T_prior,
                            self.T_map_odom.copy(), float(reg.fitness), rmse,
                            corr_m, float(np.degrees(corr_rad)), len(src.points), n_model,
-                           n_degenerate, min_info)
+                           n_degenerate, min_info, info_limit)
         if reason:
             upd.T_map_base, upd.T_map_camera = T_prior, T_prior @ self.T_base_camera
             self._rejections_in_a_row += 1
             return upd
         self._rejections_in_a_row = 0
         self.counters['accepted'] += 1
+        if n_degenerate:
+            # partial update: ICP only along the constrained directions, prior elsewhere
+            self.counters['degenerate_alignments'] += 1
+            self.counters['directions_kept_at_prior'] += n_degenerate
         self._recent_rmse.append(rmse)
         self._accept(T_base, T_odom_base)
         upd.T_map_odom = self.T_map_odom.copy()
@@ -865,9 +939,15 @@ class IcpMapper:
         """Add a capture at a known camera pose to both models (moving them if needed)."""
         c = self.config
         self._recenter(T_map_base[:3, 3])
-        self.fine.add(transform_points(T_map_camera, fine_camera), stamp_s)
+        near = fine_camera[fine_camera[:, 2] <= c.fine_max_range_m]
+        self.fine.add(transform_points(T_map_camera, near), stamp_s,
+                      depth_weights(near[:, 2], self.focal_baseline_px_m, c.disparity_sigma_px,
+                                    c.depth_sigma_floor_m))
         # coarse model: the capture's sparse points with normals from its own neighbourhood
-        model_pts = fine_camera if c.model_from == 'fine' else src_camera
+        if c.model_from == 'fine':
+            model_pts = fine_camera[fine_camera[:, 2] <= c.icp_max_range_m]
+        else:
+            model_pts = src_camera
         new = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(
             transform_points(T_map_camera, model_pts)))
         new = new.voxel_down_sample(c.coarse_voxel_m)

@@ -4,6 +4,7 @@ import dataclasses
 
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 
 from terrain_perception import mapping as mp
 from terrain_perception import raycast as rc
@@ -351,3 +352,65 @@ def test_node_yaml_holds_valid_mapper_parameters():
     assert set(section) <= known, set(section) - known
     cfg = load_config(mp.MapperConfig, path, 'icp_mapper')  # type and range checked
     assert cfg.fine_resolution_m == 0.01
+
+
+def stereo_noise(cloud, fb, sigma_d, rng):
+    """Scale each point along its ray by a depth error of sigma_z = Z^2 sigma_d / (f b)."""
+    z = cloud[..., 2]
+    dz = rng.normal(size=z.shape) * z * z * sigma_d / fb
+    return cloud * ((z + dz) / z)[..., None]
+
+
+def test_flat_ground_keeps_the_prior_in_x_y_yaw():
+    """On a plane only z, roll and pitch are observable: ICP must correct those and leave x, y
+    and yaw at the prior, even with stereo-like depth noise tilting the model normals."""
+    g = GridMap.empty(0.005, (-0.5, -1.0), (500, 400))
+    g[ELEVATION] = np.zeros(g.shape)
+    scene = rc.HeightFieldScene(g)
+    rng = np.random.default_rng(4)
+    fb = CAM.fx * 0.03
+    cfg = dataclasses.replace(CONFIG, disparity_sigma_px=0.15)
+    for gain, expect_kept in ((1.0, True), (0.0, False)):
+        m = mp.IcpMapper(dataclasses.replace(cfg, degeneracy_noise_gain=gain), T_BC, fb)
+        assert m.update(stereo_noise(cloud_at(scene, T0), fb, 0.15, rng), T0, 0.0).accepted
+        # prior off in every direction: x, y, yaw (unobservable) and z, roll, pitch
+        prior = make_T(rpy_to_R(0.01, -0.012, 0.03), [0.02, -0.015, 0.006]) @ T1
+        u = m.update(stereo_noise(cloud_at(scene, T1), fb, 0.15, rng), prior, 1.0)
+        cam, cam_prior, cam_true = u.T_map_camera, prior @ T_BC, T1 @ T_BC
+        # rotation about the map's z axis between the estimate and the prior
+        yaw = Rotation.from_matrix(cam[:3, :3] @ cam_prior[:3, :3].T).as_rotvec()[2]
+        if not expect_kept:
+            # without the noise floor the noisy normals pass as constraints in x, y or yaw
+            assert u.n_degenerate < 3
+            continue
+        assert u.accepted and u.n_degenerate == 3, (u.n_degenerate, u.min_information,
+                                                    u.information_limit)
+        assert m.counters['degenerate_alignments'] == 1
+        assert m.counters['directions_kept_at_prior'] == 3
+        # (noisy normals mix a little of x, y into the roll / pitch eigenvectors)
+        np.testing.assert_allclose(cam[:2, 3], cam_prior[:2, 3], atol=3e-3)
+        assert abs(np.degrees(yaw)) < 0.3  # prior 1.7 deg off the truth
+        # the observable ones go to the truth: height, and the up axis (roll, pitch)
+        assert abs(cam[2, 3] - cam_true[2, 3]) < 3e-3  # prior 6 mm off
+        def tilt(T):
+            return np.arccos(np.clip(T[2, :3] @ cam_true[2, :3], -1, 1))
+        assert tilt(cam) < 0.5 * tilt(cam_prior)
+
+
+def test_depth_weights_follow_the_stereo_noise_model():
+    fb, sd, floor = 12.8, 0.15, 1e-4
+    w = mp.depth_weights(np.array([0.3, 0.6, 1.2]), fb, sd, floor)
+    sz = np.array([0.3, 0.6, 1.2]) ** 2 * sd / fb
+    np.testing.assert_allclose(w, 1 / (sz ** 2 + floor ** 2))
+    assert w[0] / w[1] == pytest.approx(16, rel=0.02)  # sigma_z ~ Z^2: weight ~ Z^-4
+    np.testing.assert_array_equal(mp.depth_weights(np.array([0.3, 1.2]), None, sd, floor), 1.0)
+    np.testing.assert_array_equal(mp.depth_weights(np.array([0.3, 1.2]), fb, 0.0, floor), 1.0)
+    # a cell seen once near (precise) and many times far (noisy) follows the near sample
+    f = mp.FineHeightMap(0.01, (4, 4), (0.0, 0.0))
+    f.add(np.array([[0.015, 0.015, 0.100]]), 0.0, mp.depth_weights(np.array([0.3]), fb, sd,
+                                                                     floor))
+    far = np.c_[np.full(4, 0.015), np.full(4, 0.015), np.full(4, 0.140)]
+    f.add(far, 1.0, mp.depth_weights(np.full(4, 1.2), fb, sd, floor))
+    wn, wf = w[0], 4 * w[2]
+    assert f.heights()[1, 1] == pytest.approx((0.1 * wn + 0.14 * wf) / (wn + wf))
+    assert f.heights()[1, 1] < 0.101 and f.s['n'][1, 1] == 5  # the plain mean: 0.132
