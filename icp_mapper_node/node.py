@@ -102,7 +102,9 @@ class IcpMapperNode(Node):
         self.mapper_cfg: MapperConfig = declare_config(self, MapperConfig)
         self.robot = load_robot_model(self.node_cfg.robot)
         self.T_base_camera = np.asarray(self.robot.T_base_camera)
-        self.mapper = IcpMapper(self.mapper_cfg, self.T_base_camera)
+        # f b of the stereo head sets each point's depth noise (MapperConfig.disparity_sigma_px)
+        self.mapper = IcpMapper(self.mapper_cfg, self.T_base_camera,
+                                self.robot.camera.fx * self.robot.baseline_m)
         c = self.node_cfg
         self.odom = PoseBuffer(c.odom_buffer_size, c.odom_max_extrapolation_s)
         self.gate = OdometryGate(c.odom_max_speed_m_s, c.odom_max_yaw_rate_deg_s)
@@ -110,6 +112,7 @@ class IcpMapperNode(Node):
         self._coarse: Dict[tuple, PointCloud2] = {}
         self._twist = None
         self._up_base: Optional[np.ndarray] = None
+        self._fine_stamp = None  # stamp of a fused map not yet published
         self.captures = 0
 
         self.pub_pose = self.create_publisher(PoseStamped, '/icp/pose', RELIABLE_QOS)
@@ -201,9 +204,8 @@ class IcpMapperNode(Node):
         self.pub_corr.publish(pose_stamped(self.mapper.T_map_odom, c.map_frame, stamp))
         if not res.fused:
             return
-        grid = self.mapper.fine_grid(c.map_frame)
-        grid.metadata.clear()  # capture poses go out on their own topic
-        self.pub_fine.publish(grid_to_msg(grid, stamp, basic_layers=('elevation',)))
+        self._fine_stamp = stamp
+        self._publish_fine()
         _, poses = self.mapper.capture_poses()
         arr = PoseArray(header=make_header(c.map_frame, stamp))
         arr.poses = [matrix_to_pose(T) for T in poses]
@@ -213,7 +215,20 @@ class IcpMapperNode(Node):
             self.pub_coarse.publish(xyz_to_cloud(self.mapper.coarse_points(), c.map_frame,
                                                  stamp))
 
+    def _publish_fine(self) -> None:
+        # the whole window (~2.5 MB at 300 x 300 x 7) is converted only when someone listens;
+        # a map fused while nobody did goes out from the timer once a subscriber appears
+        # (transient local: a late joiner then gets the current map, not a stale one)
+        if self._fine_stamp is None or self.pub_fine.get_subscription_count() == 0:
+            return
+        grid = self.mapper.fine_grid(self.node_cfg.map_frame)
+        grid.metadata.clear()  # capture poses go out on their own topic
+        self.pub_fine.publish(grid_to_msg(grid, self._fine_stamp, basic_layers=('elevation',)))
+        self._fine_stamp = None
+        self.counters.counts['fine_maps_published'] += 1
+
     def _publish_diagnostics(self) -> None:
+        self._publish_fine()
         for k, v in self.mapper.counters.items():
             self.counters.counts[f'mapper_{k}'] = v
         self.counters.publish()
