@@ -7,9 +7,9 @@ import pytest
 
 from terrain_perception.camera import PinholeCamera
 from terrain_perception.grid import GridMap
-from terrain_perception.patches import (IntegralMoments, PatchConfig, bilateral_filter_cloud,
-                                        find_patches, fit_paraboloids, fixation_point,
-                                        gravity_in_camera, integral_normals,
+from terrain_perception.patches import (IntegralMoments, PatchConfig, _seed_band,
+                                        bilateral_filter_cloud, find_patches, fit_paraboloids,
+                                        fixation_point, gravity_in_camera, integral_normals,
                                         median_downsample_2x2, patch_filters, saliency,
                                         smallest_eigenvectors)
 from terrain_perception.raycast import raycast_points
@@ -321,6 +321,33 @@ def test_find_patches_on_flat_ground_with_a_ramp():
                                np.broadcast_to(pm.radius[level, None], (level.sum(), 8)),
                                rtol=0.05)
     assert np.all((pm.radius > 0.5 * cfg.patch_radius_m) & (pm.radius < 1.2 * cfg.patch_radius_m))
+
+
+def test_seed_region_of_the_row_band_matches_the_whole_frame():
+    """Stages I-II run only on the rows _seed_band selects (a quadruped's camera sees far past
+    its fixation point); the seed region (step 6) must be exactly the whole-frame one."""
+    rng = np.random.default_rng(9)
+    cam = PinholeCamera(640, 480, 525.0, 525.0, 319.5, 239.5)
+    T = _camera_pose(0.2, 35.0)
+
+    def height(x, y):   # bumps and a 3 cm step across the view
+        return (0.01 * np.sin(20 * x) * np.cos(17 * y) + 0.005 * np.sin(53 * x + 31 * y)
+                + np.where(x > 0.35, 0.03, 0.0))
+
+    cloud = _plane_cloud(cam, T, height)
+    cloud += rng.normal(0, 0.001, cloud.shape).astype(np.float32) * cloud[..., 2:3]
+    g = T[:3, :3].T @ np.array([0, 0, -1.0])
+    cfg = PatchConfig(bilateral_sigma_depth_m=0.01, fixation_down_m=0.2, fixation_forward_m=0.16,
+                      roi_radius_m=0.15, patch_radius_m=0.02, max_residual_m=0.002)
+    fix = fixation_point(g, cfg)
+    D = median_downsample_2x2(bilateral_filter_cloud(cloud, cfg))
+    with np.errstate(invalid='ignore'):
+        whole = np.count_nonzero(((D - fix) ** 2).sum(-1) <= cfg.roi_radius_m ** 2)
+    a, b, _ = _seed_band(np.ascontiguousarray(cloud[..., 2]), fix, cam.fx, cam.fy, cfg)
+    assert a >= 40                                            # the band is a real crop
+    p = find_patches(cloud, cam.fx, cam.fy, g, cfg)
+    assert whole > 1000 and p.counts['dtfp'] == whole
+    assert p.counts['seeds'] == cfg.max_seeds and len(p) > 0
 
 
 def test_find_patches_bad_and_empty_input():
