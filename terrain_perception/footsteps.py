@@ -32,6 +32,7 @@ points [m].
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field, replace
 from typing import List, Optional, Tuple
 
@@ -97,6 +98,14 @@ class PlannerConfig:
     max_unevenness: float = param(0.5, 'largest RMS deviation of the heights under the foot from '
                                   'their plane, in foot radii (edges, cracks, knobs); 0 = no '
                                   'safety filter', 0.0, 100.0)
+    map_safety_factor: float = param(
+        0.9, 'the safety filter on the map flags cells beyond this share of the unevenness and '
+        'slope limits: a map coarser and noisier than the terrain under-reads the edges the '
+        'foot meets (1 = no margin)', 0.1, 1.0)
+    max_leg_spread_m: float = param(
+        0.15, 'largest distance along the walking direction by which a new foothold may lead '
+        'the rearmost other foot, both measured from their nominal places [m] (0 = no limit)',
+        0.0, 10.0)
     nominal_weight_per_m2: float = param(
         20.0, "cost per square metre of distance from the stride rule's foothold (the search "
         'area centre): keeps legs from lagging into dead ends [1/m^2]', 0.0, 1e6)
@@ -270,15 +279,17 @@ def _project_to_triangle(p: np.ndarray, tri: np.ndarray) -> np.ndarray:
     if point_in_triangle_margin(p, tri) >= 0.0:
         return p.copy()
     best, bd = None, np.inf
+    px, py = float(p[0]), float(p[1])
+    tl = np.asarray(tri, dtype=np.float64).tolist()
     for i in range(3):
-        a, b = tri[i], tri[(i + 1) % 3]
-        ab = b - a
-        t = np.clip(np.dot(p - a, ab) / max(np.dot(ab, ab), 1e-18), 0.0, 1.0)
-        q = a + t * ab
-        d = np.dot(p - q, p - q)
+        (ax, ay), (bx, by) = tl[i], tl[(i + 1) % 3]
+        ux, uy = bx - ax, by - ay
+        t = min(max(((px - ax) * ux + (py - ay) * uy) / max(ux * ux + uy * uy, 1e-18), 0.0), 1.0)
+        qx, qy = ax + t * ux, ay + t * uy
+        d = (px - qx) ** 2 + (py - qy) ** 2
         if d < bd:
-            best, bd = q, d
-    return best
+            best, bd = (qx, qy), d
+    return np.array(best)
 
 
 def point_in_triangle_margin(p: np.ndarray, tri: np.ndarray) -> float:
@@ -291,11 +302,13 @@ def point_in_triangle_margin(p: np.ndarray, tri: np.ndarray) -> float:
         return -np.inf
     sgn = 1.0 if area2 > 0 else -1.0
     out = np.inf
-    for i in range(3):
-        a, b = tri[i], tri[(i + 1) % 3]
-        ab = b - a
-        cross = ab[0] * (p[1] - a[1]) - ab[1] * (p[0] - a[0])
-        out = min(out, sgn * cross / np.linalg.norm(ab))
+    px, py = float(p[0]), float(p[1])
+    t = tri.tolist()
+    for i in range(3):     # scalar loop: numpy's per-call cost dominates on 2-vectors
+        (ax, ay), (bx, by) = t[i], t[(i + 1) % 3]
+        ux, uy = bx - ax, by - ay
+        cross = ux * (py - ay) - uy * (px - ax)
+        out = min(out, sgn * cross / math.hypot(ux, uy))
     return float(out)
 
 
@@ -307,9 +320,19 @@ def body_pose(body_xy: np.ndarray, feet: np.ndarray, yaw: float, robot: RobotMod
     plane keeps every leg near its nominal length on uneven ground, as the robot's posture
     adjustment does (paper 002 sec. III)."""
     feet = np.asarray(feet, dtype=np.float64)
-    A_ = np.c_[np.ones(len(feet)), feet[:, :2] - feet[:, :2].mean(0)]
-    sol, *_ = np.linalg.lstsq(A_, feet[:, 2], rcond=None)
-    grad = sol[1:]
+    c_xy = feet[:, :2].mean(0)
+    d = feet[:, :2] - c_xy
+    # Least-squares plane z = z0 + grad . (xy - c_xy); centred, so z0 is the mean height and
+    # grad solves the 2x2 normal equations (lstsq's minimum-norm answer when they are singular).
+    M = d.T @ d
+    rhs = d.T @ (feet[:, 2] - feet[:, 2].mean())
+    det = M[0, 0] * M[1, 1] - M[0, 1] * M[1, 0]
+    if abs(det) > 1e-12 * max(float(np.trace(M)) ** 2, 1e-30):
+        grad = np.array([M[1, 1] * rhs[0] - M[0, 1] * rhs[1],
+                         M[0, 0] * rhs[1] - M[1, 0] * rhs[0]]) / det
+    else:
+        grad = np.linalg.lstsq(d, feet[:, 2] - feet[:, 2].mean(), rcond=None)[0]
+    sol = (float(feet[:, 2].mean()), grad)
     gnorm = float(np.hypot(*grad))
     if gnorm > np.tan(max_tilt_rad):
         grad = grad * (np.tan(max_tilt_rad) / gnorm)
@@ -319,9 +342,10 @@ def body_pose(body_xy: np.ndarray, feet: np.ndarray, yaw: float, robot: RobotMod
     x = h - np.dot(h, n) * n
     x /= np.linalg.norm(x)
     T = np.eye(4)
-    T[:3, :3] = np.c_[x, np.cross(n, x), n]
+    T[:3, 0], T[:3, 2] = x, n
+    T[:3, 1] = (n[1] * x[2] - n[2] * x[1], n[2] * x[0] - n[0] * x[2], n[0] * x[1] - n[1] * x[0])
     xy = np.asarray(body_xy, dtype=np.float64)
-    z_plane = sol[0] + np.dot(grad, xy - feet[:, :2].mean(0))
+    z_plane = sol[0] + np.dot(grad, xy - c_xy)
     height = robot.standing_height_m if height_m is None else float(height_m)
     T[:3, 3] = np.array([xy[0], xy[1], z_plane]) + height * n
     return T
@@ -421,9 +445,10 @@ class FootstepPlanner:
         self.grid, self.cost = grid, cost
         self.allowed = candidate_mask(grid, self.cfg) & np.isfinite(cost)
         if self.cfg.max_unevenness > 0:
+            k = self.cfg.map_safety_factor
             self.allowed &= ~unsafe_cells(grid[ELEVATION], grid.resolution_m,
-                                          self.robot.foot_radius_m, self.cfg.max_slope_deg,
-                                          self.cfg.max_unevenness)
+                                          self.robot.foot_radius_m, k * self.cfg.max_slope_deg,
+                                          k * self.cfg.max_unevenness)
         return None
 
     # ---- helpers ---------------------------------------------------------------------------
@@ -572,17 +597,25 @@ class FootstepPlanner:
 
     def _recover(self, failed_plan, feet, body_xy, yaw, remaining, first_leg) -> FootstepPlan:
         """A stance with no feasible continuation (a re-estimated map can remove the footholds
-        the previous plan counted on): retry with, in turn, the other legs first, short or
-        backward re-placing steps allowed, and half the stability margin, plus a deeper crouch.
-        The first that plans is returned with the relaxation named in its status."""
+        the previous plan counted on, a band of unsafe cells can cross a leg's path): retry
+        with, in turn, a three times wider search across the walking line for the same leg,
+        the other legs first, short or backward re-placing steps allowed, half the stability
+        margin plus a deeper crouch, and the wider search with the other legs first. The first
+        that plans is returned with the relaxation named in its status. The wider search comes
+        first: letting the other legs go on while one is stuck leaves it ever further behind."""
         base = self.cfg
-        tries = [('another leg first', {}, leg) for leg in CRAWL_ORDER if leg != first_leg]
+        wide = {'lateral_search_m': 3.0 * base.lateral_search_m, 'min_step_m': -0.03}
+        others = [leg for leg in CRAWL_ORDER if leg != first_leg]
+        tries = [('wider search across the walking line', wide, first_leg)]
+        tries += [('another leg first', {}, leg) for leg in others]
         tries += [('re-placing a foot up to 3 cm back allowed', {'min_step_m': -0.03},
                    first_leg),
                   ('half stability margin, deeper crouch',
                    {'stability_margin_m': 0.5 * base.stability_margin_m,
                     'min_crouch': max(0.3, base.min_crouch - 0.15), 'min_step_m': -0.03},
                    first_leg)]
+        tries += [('another leg first, wider search across the walking line', wide, leg)
+                  for leg in others]
         try:
             for what, change, leg in tries:
                 self.cfg = replace(base, horizon_steps=min(base.horizon_steps, 4), **change)
@@ -707,6 +740,13 @@ class FootstepPlanner:
         ok = inside & self.allowed[ij[:, 0], ij[:, 1]]
         # A step back onto the foot's own cell is no step.
         ok &= np.hypot(*(xy - state.feet[leg, :2]).T) >= 0.75 * g.resolution_m
+        if cfg.max_leg_spread_m > 0:
+            # No foot further ahead of its nominal place than the rearmost other foot by more
+            # than the spread: a foot left behind (an obstacle in its area) holds the others
+            # back instead of ending up out of reach once the COG has moved on.
+            fu, _ = self._uv(state.feet)
+            lag = np.delete(fu - self.nom_u, leg)
+            ok &= u - self.nom_u[leg] <= lag.min() + cfg.max_leg_spread_m
         if not np.any(ok):
             return None, 'no observed, finite-cost cell in its search area'
         xy, u, v, ij = xy[ok], u[ok], v[ok], ij[ok]
@@ -823,6 +863,16 @@ class FootstepPlanner:
                 nxt = self._swing_pose(nf, next_leg, yaw, A, remaining)
                 if nxt[0] is None:
                     last_fail = f'after {LEG_NAMES[leg]} steps, {nxt[1]}'
+                    continue
+                # A foot more than A/2 behind the others (Shao's "in position" tolerance) must
+                # stay liftable too (the COG moved into the others' triangle with it still in
+                # reach), or it is stranded a few steps on.
+                lag = self._uv(nf)[0] - self.nom_u
+                rear = int(np.argmin(lag))
+                if (rear not in (leg, next_leg)
+                        and lag[rear] < np.mean(np.delete(lag, rear)) - 0.5 * A
+                        and self._swing_pose(nf, rear, yaw, A, remaining)[0] is None):
+                    last_fail = f'after {LEG_NAMES[leg]} steps, {LEG_NAMES[rear]} could not lift'
                     continue
                 ns = _State(nf, total, st.steps + [step],
                             nf.copy() if n_phase == 0 else st.period_feet)

@@ -276,3 +276,42 @@ def test_bad_inputs_give_an_explanatory_empty_plan():
     for plan, status in cases:
         assert plan.status == status, plan.status_text
         assert plan.footsteps == [] and plan.status_text
+
+
+def test_map_safety_factor_refuses_slopes_just_below_the_limit():
+    """The 1 cm map under-reads the slopes and edges the foot meets, so the map's filter keeps
+    a margin: a 28 deg plane (under the 30 deg limit, above 0.9 x 30 = 27) is refused by
+    default and accepted without the margin."""
+    n = 150
+    x = (np.arange(n) * RES)[:, None] * np.ones((1, n))
+    g = _grid(np.tan(np.radians(28.0)) * x)
+    inner = np.s_[10:-10, 10:-10]
+    default = fs.FootstepPlanner(ROBOT, fs.PlannerConfig())
+    assert default.set_map(g) is None and not default.allowed[inner].any()
+    plain = fs.FootstepPlanner(ROBOT, fs.PlannerConfig(map_safety_factor=1.0))
+    assert plain.set_map(g) is None and plain.allowed[inner].all()
+    steep = _grid(np.tan(np.radians(31.0)) * x)
+    assert plain.set_map(steep) is None and not plain.allowed[inner].any()
+
+
+def test_a_foot_left_behind_holds_the_others_back():
+    """A hind foot stranded 0.12 m behind its nominal place: no planned foothold leads the
+    rearmost other foot (both from their nominal places) by more than max_leg_spread_m, and
+    the stranded foot is the one that catches up first."""
+    cfg = fs.PlannerConfig(trot_threshold_m=0.0, horizon_steps=8)   # walk, look far ahead
+    planner = fs.FootstepPlanner(ROBOT, cfg)
+    assert planner.set_map(_flat()) is None
+    nom = np.array(ROBOT.nominal_feet)
+    feet = nom.copy()
+    feet[:, 2] = 0.0
+    feet[fs.RH, 0] -= 0.12
+    plan = planner.plan(_pose(), np.array([0.6, 0.0]), feet=feet, first_leg=fs.LF)
+    assert plan.ok, plan.status_text
+    _check_plan_feasible(plan, cfg)
+    cur = feet.copy()
+    for s in plan.footsteps:
+        lag = np.delete(cur[:, 0] - nom[:, 0], s.leg)
+        assert s.position[0] - nom[s.leg, 0] <= lag.min() + cfg.max_leg_spread_m + 1e-9
+        cur[s.leg] = s.position
+    rh = [s for s in plan.footsteps if s.leg == fs.RH]
+    assert rh and rh[0].position[0] > feet[fs.RH, 0] + 0.05
