@@ -7,10 +7,13 @@
   order LH, LF, RH, RF, by a small beam search. Each foothold is a cell of its leg's search area
   that (a) has a finite cost, (b) was observed, or was filled with a finite line-of-sight upper
   bound close to its value, (c) is safe for the foot on the map (:func:`unsafe_cells`: slope and
-  unevenness limits), (d) is within the leg's reach (analytic IK within joint limits, with a
-  reach margin) from the body pose during the swing, and (e) leaves the next swing's support
+  unevenness limits, applied at ``map_safety_factor`` of their values because the map is
+  coarser than the terrain), (d) is within the leg's reach (analytic IK within joint limits,
+  with a reach margin) from the body pose during the swing, (e) leaves the next swing's support
   triangle able to hold the COG with ``stability_margin_m`` within reach, with at least one
-  foothold for that next leg (one-swing lookahead). Among those, the foothold minimises
+  foothold for that next leg (one-swing lookahead), and (f) does not lead the rearmost other
+  foot by more than ``max_leg_spread_m`` nor leave a foot far behind unable to lift. Among
+  those, the foothold minimises
   omega x (cost + distance from the stride-rule foothold + height change). Salient contact
   patches (:mod:`terrain_perception.patches`) near a cell lower its cost. During each swing the
   COG sits in the other three feet's triangle shrunk by the margin, the body follows the feet's

@@ -4,7 +4,9 @@ Implements Kanoulas & Vona, "Bio-Inspired Rough Terrain Contact Patch Perception
 section III, steps 1-14:
 
 * Stage I   - bilateral filter on the organized cloud (along the pixel rays) and a 2x2 median
-  downsample (:func:`bilateral_filter_cloud`, :func:`median_downsample_2x2`).
+  downsample (:func:`bilateral_filter_cloud`, :func:`median_downsample_2x2`). The pipeline runs
+  both only on the image rows whose points can reach the seed region or the windows of steps 7
+  and 11 (an exact depth bound, :func:`_seed_band`); the other rows' results would be unused.
 * Stage II  - gravity from the IMU orientation, the fixation point ``f = l_d g + l_f (x x g)``
   and the seeds within ``R`` of it (:func:`gravity_in_camera`, :func:`fixation_point`).
 * Stage III - normals at two scales from integral images, window ``2 r f / Z`` and ``r f / Z``
@@ -621,8 +623,9 @@ def _empty_patches(gravity, fixation, counts, timings) -> PatchSet:
 
 
 def _seed_band(z: np.ndarray, fix: np.ndarray, fx: float, fy: float, cfg: PatchConfig):
-    """Of the depth image ``z`` (even height), the full-resolution rows ``[a, b)`` (even) that steps 3-11 can read, and which of the
-    downsampled rows in them can hold a seed; ``None`` when no row can.
+    """Of the depth image ``z`` (even height), the full-resolution rows ``[a, b)`` (even) that
+    steps 3-11 can read, and which of the downsampled rows in them can hold a seed; ``None``
+    when no row can.
 
     Exact, not a heuristic: a filtered depth is a convex combination of the valid raw depths in
     its bilateral window and a 2x2 median lies between its block's values, so downsampled row
