@@ -762,7 +762,7 @@ def find_patches(cloud: np.ndarray, fx: float, fy: float, gravity_cam: np.ndarra
             rest = np.setdiff1d(np.arange(n_cand), order, assume_unique=True)
             order = np.concatenate([order, rng.permutation(rest)])
         rate = max(n_dong / n_eval, 0.05) if n_eval else 1.0
-        size = int(1.2 * (cfg.max_seeds - n_kept) / rate) + 16
+        size = int(1.5 * (cfg.max_seeds - n_kept) / rate) + 16
         sel = order[n_eval:n_eval + size]
         n_eval += len(sel)
         N, Ns = integral_normals(D[r0:r1, c0:c1], rows[sel] - r0, cols[sel] - c0, 0.5 * fx,
