@@ -79,10 +79,42 @@ class WalkingConfig:
                                         'height above the swing foot [-]', 0.0, 1.0)
     recenter: bool = param(True, 'Shift the body back over the centre of its four feet when '
                            'the plan is exhausted')
+    contact_force_n: float = param(2.0, 'Vertical ground force on a foot [N], estimated from '
+                                   'the joint torques, above which the foot counts as loaded; '
+                                   'drives touchdown sensing (needs joint efforts; 0 = off, '
+                                   'feet then land at the planned heights blindly)', 0.0, 1000.0)
+    contact_ticks: int = param(3, 'Consecutive control ticks above contact_force_n that make a '
+                               'touchdown (debounce) [-]', 1, 1000)
+    contact_max_descent_m_s: float = param(0.25, 'A foot still descending faster than this '
+                                           '(measured, from the joint rates) is in the air: '
+                                           'decelerating a falling leg also loads its motors '
+                                           '[m/s]', 0.0, 10.0)
+    support_force_n: float = param(0.5, 'Before a leg lifts, each of the other three must carry '
+                                   'more than this estimated vertical force [N], else it is '
+                                   'lowered to the ground first (a light but real stance leg '
+                                   'carries ~2 N on LittleDog; a hanging one reads about -1 N, '
+                                   'its own weight)', -100.0, 1000.0)
+    probe_contact_force_n: float = param(0.5, 'A probing foot (moving slowly, so its motors feel '
+                                         'no inertia) has found the ground when its estimated '
+                                         'vertical force exceeds this [N]; hanging it reads '
+                                         'about -1 N (its own weight)', -100.0, 1000.0)
+    early_touchdown_fraction: float = param(0.75, 'Contact after this fraction of a swing ends '
+                                            'the swing where the foot is: the ground is higher '
+                                            'than planned [-]', 0.5, 1.0)
+    probe_depth_m: float = param(0.03, 'A foot that is not loaded when it should be (after its '
+                                 'swing, or before another leg lifts) is lowered up to this '
+                                 'far below its foothold looking for the ground [m]', 0.0, 0.2)
+    probe_speed_m_s: float = param(0.03, 'Descent speed while probing for the ground [m/s]',
+                                   0.001, 1.0)
+    attitude_gain: float = param(0.7, 'Share of the measured body tilt (IMU) that each body '
+                                 'shift corrects by re-estimating the stance feet heights and '
+                                 'changing the legs\' lengths (0 = level-body open loop) [-]',
+                                 0.0, 1.0)
 
 
 class Phase(NamedTuple):
-    """The motion segment being executed: 'shift' (body moves, four feet down) or 'swing'."""
+    """The motion segment being executed: 'shift' (body moves, four feet down), 'swing', or
+    'probe' (a foot lowered slowly until it finds the ground)."""
 
     kind: str
     legs: tuple          # swinging legs (empty for a shift)
@@ -99,7 +131,7 @@ class JointCommand(NamedTuple):
 
 @dataclass
 class _Segment:
-    kind: str                     # 'shift' or 'swing'
+    kind: str                     # 'shift', 'swing' or 'probe'
     t0: float
     duration: float
     spline: CubicSpline           # joint angles (12,) over [0, duration]
@@ -109,6 +141,16 @@ class _Segment:
     legs: tuple = ()              # swinging legs
     moves_body: bool = True
     roll_end: Optional[np.ndarray] = None   # (4, 3) rolling displacement of the feet at the end
+    feet_fn: Optional[Callable] = None      # tau -> (4, 3) planned contact points (odom)
+    knots: Optional[np.ndarray] = None      # (n,) IK knot times [s]
+    roll: Optional[np.ndarray] = None       # (n, 4, 3) rolling displacement at the knots
+
+    def feet_at(self, tau: float) -> np.ndarray:
+        """``(4, 3)`` contact points (odom) at ``tau`` into the segment, rolling included."""
+        tau = min(max(float(tau), 0.0), self.duration)
+        roll = np.stack([np.stack([np.interp(tau, self.knots, self.roll[:, k, a])
+                                   for a in range(3)]) for k in range(4)])
+        return np.asarray(self.feet_fn(tau), dtype=float) + roll
 
     @property
     def t_end(self) -> float:
@@ -194,6 +236,14 @@ class WalkingController:
         self._phi_ref = None       # (4, 2) shank pitch and roll angles when the contact was set
         self.steps_done = 0
         self.last_margin_m = np.nan
+        self.foot_loads = np.full(4, np.nan)   # estimated vertical foot forces [N]
+        self._load_count = np.zeros(4, dtype=int)
+        self._touch_count = np.zeros(4, dtype=int)
+        self._q_meas: Optional[np.ndarray] = None
+        self._loaded: Optional[np.ndarray] = None   # (4,) bool, None without torques
+        self._probe_legs: tuple = ()
+        self.touchdowns = {'early': 0, 'probed': 0, 'not_found': 0}
+        self._R_tilt: Optional[np.ndarray] = None   # measured base tilt (yaw removed)
         self.last_ik_reasons: tuple = ()
 
     # -- inputs ---------------------------------------------------------------------------
@@ -288,18 +338,38 @@ class WalkingController:
 
     # -- main tick ------------------------------------------------------------------------
     def update(self, t: float, q: Optional[np.ndarray] = None,
-               dq: Optional[np.ndarray] = None) -> JointCommand:
-        """Joint targets at time ``t`` [s]; ``q``/``dq`` (12,) measured joint state (optional).
+               dq: Optional[np.ndarray] = None,
+               tau: Optional[np.ndarray] = None,
+               attitude: Optional[np.ndarray] = None) -> JointCommand:
+        """Joint targets at time ``t`` [s]; ``q``/``dq``/``tau`` (12,) measured joint angles,
+        rates and motor torques, ``attitude`` the measured base orientation (3x3, in any
+        gravity-aligned frame, e.g. the IMU's); all optional.
 
         The first call initialises the stance from ``q`` if :meth:`reset` was not called.
+        With torques, each foot's ground force is estimated (:func:`kinematics.foot_forces`)
+        and touchdown is sensed: a swing that meets the ground early ends there, and a foot
+        that should carry weight but does not (after its swing, or before another leg lifts)
+        is lowered slowly until it does (``probe``). Without them feet land at the planned
+        heights. With ``attitude``, each body shift levels the body: the stance feet heights
+        are re-estimated from the commanded leg geometry seen through the measured tilt
+        (``attitude_gain``).
         """
         t = float(t)
         if self._feet is None:
             self.reset(t, q)
         self._t = t
+        self._sense(q, tau, dq)
+        self._R_tilt = None
+        if attitude is not None:
+            R = np.asarray(attitude, dtype=float).reshape(3, 3)
+            if np.all(np.isfinite(R)):
+                self._R_tilt = rot_z(-float(np.arctan2(R[1, 0], R[0, 0]))) @ R
         while self._seg is not None and t >= self._seg.t_end:
             self._finish_segment()
             self._seg = self._next_segment(max(t, self._t))
+        if self._seg is not None and self._touched_down(t):
+            self._cut_segment(t)
+            self._seg = self._next_segment(t)
         if self._seg is None:
             self._seg = self._next_segment(t)
         self._update_still(t, dq)
@@ -425,8 +495,119 @@ class WalkingController:
         self._phi_ref = _shank_angles(self._q_last.reshape(4, 3))
         if seg.kind == 'swing':
             self.steps_done += len(seg.legs)
+        elif seg.kind == 'probe':
+            self.touchdowns['not_found'] += 1
+            self._step_error(f'{"+".join(LEG_NAMES[k] for k in seg.legs)} found no ground '
+                             f'within the probe depth below its foothold')
+        self._schedule_probes(seg)
+
+    # -- touchdown sensing ----------------------------------------------------------------
+    def _sense(self, q, tau, dq) -> None:
+        """Estimate the feet's vertical ground forces from the joint torques."""
+        thr = self.config.contact_force_n
+        if q is None or tau is None or thr <= 0.0:
+            self._loaded = None
+            return
+        q = np.asarray(q, dtype=float).reshape(4, 3)
+        tau = np.asarray(tau, dtype=float).reshape(4, 3)
+        if not (np.all(np.isfinite(q)) and np.all(np.isfinite(tau))):
+            self._loaded = None
+            return
+        # base-frame z: the controller keeps the body level, so this is the vertical force
+        fz = kinematics.foot_forces(self.model, q, tau)[:, 2]
+        self.foot_loads = fz
+        self._q_meas = q
+        above = np.nan_to_num(fz, nan=0.0) > thr
+        if dq is not None:
+            dq = np.asarray(dq, dtype=float).reshape(4, 3)
+            vz = np.einsum('kj,kj->k', kinematics.jacobian(self.model, q)[:, 2, :], dq)
+            above &= ~(vz < -self.config.contact_max_descent_m_s)
+        self._load_count = np.where(above, self._load_count + 1, 0)
+        self._loaded = self._load_count >= self.config.contact_ticks
+        self._supporting = np.nan_to_num(fz, nan=-np.inf) > self.config.support_force_n
+        touching = np.nan_to_num(fz, nan=-np.inf) > self.config.probe_contact_force_n
+        self._touch_count = np.where(touching, self._touch_count + 1, 0)
+
+    def _touched_down(self, t: float) -> bool:
+        """The segment in progress should end now: its moving feet met the ground."""
+        seg, loaded = self._seg, self._loaded
+        if loaded is None or not seg.legs:
+            return False
+        legs = list(seg.legs)
+        if seg.kind == 'probe':
+            return bool((self._touch_count[legs] >= self.config.contact_ticks).all())
+        if seg.kind == 'swing' and t - seg.t0 >= self.config.early_touchdown_fraction \
+                * seg.duration and t < seg.t_end and loaded[legs].all():
+            self.touchdowns['early'] += 1
+            return True
+        return False
+
+    def _cut_segment(self, t: float) -> None:
+        """End the segment in progress at ``t``: the feet and body stay where they are."""
+        seg = self._seg
+        tau = min(max(t - seg.t0, 0.0), seg.duration)
+        self._feet = seg.feet_at(tau)
+        self._body = np.asarray(seg.body_fn(tau), dtype=float).copy()
+        self._q_last = seg.joints(tau)[0]
+        self._phi_ref = _shank_angles(self._q_last.reshape(4, 3))
+        if seg.kind == 'swing':
+            self.steps_done += len(seg.legs)
+        elif seg.kind == 'probe':
+            self.touchdowns['probed'] += 1
+        self._schedule_probes(seg)
+
+    def _schedule_probes(self, seg: _Segment) -> None:
+        """Before a swing (the body has shifted) the other three feet must carry weight.
+
+        Not checked right after a swing: the landed foot carries little until the next shift
+        moves the COG towards it, so its load cannot tell touching from hanging. (Probing it
+        anyway was tried: each probe leaves the leg pressed a few mm into the ground, the body
+        rises against the dead-reckoned heights and the next feet hang - a runaway.)
+        """
+        self._probe_legs = ()
+        if self._loaded is None or self.config.probe_depth_m <= 0.0:
+            return
+        if seg.kind == 'shift' and self._pending_swing is not None:
+            self._probe_legs = tuple(k for k in range(4) if k not in self._pending_swing.legs
+                                     and not self._supporting[k])
+
+
+    def _make_probe(self, legs: tuple, t0: float) -> Optional[_Segment]:
+        """Lower ``legs`` slowly (body still) by up to ``probe_depth_m``; shallower if the
+        full depth is out of reach."""
+        c = self.config
+        feet0, body = self._feet.copy(), self._body.copy()
+        rolling = np.ones(4, dtype=bool)
+        rolling[list(legs)] = False
+        for depth in (c.probe_depth_m, 0.6 * c.probe_depth_m, 0.3 * c.probe_depth_m):
+            dur = max(depth / c.probe_speed_m_s, 2.0 * c.knot_dt_s)
+
+            def feet_fn(tau, depth=depth, dur=dur):
+                f = np.broadcast_to(feet0, np.shape(tau) + (4, 3)).copy()
+                s = np.clip(np.asarray(tau) / dur, 0.0, 1.0)
+                for leg in legs:
+                    f[..., leg, 2] = feet0[leg, 2] - depth * s
+                return f
+
+            def body_fn(tau):
+                return np.broadcast_to(body, np.shape(tau) + (4,)).copy() if np.ndim(tau) \
+                    else body.copy()
+
+            seg = self._build(t0, dur, 'probe', body_fn, feet_fn, rolling)
+            if seg is not None:
+                seg.feet_end = feet_fn(dur) + seg.roll_end
+                seg.body_end = body
+                seg.legs = tuple(legs)
+                seg.moves_body = False
+                return seg
+        return None
 
     def _next_segment(self, t0: float) -> Optional[_Segment]:
+        if self._probe_legs:
+            legs, self._probe_legs = self._probe_legs, ()
+            seg = self._make_probe(legs, t0)
+            if seg is not None:
+                return seg
         if self._pending_swing is not None:
             step = self._pending_swing
             self._pending_swing = None
@@ -605,14 +786,22 @@ class WalkingController:
         delta = np.concatenate([goal[:3] - start[:3], [dyaw]])
         dur = self.shift_s * float(np.clip(np.linalg.norm(delta[:2]) / max(
             0.25 * self.model.body_move_per_period_m, 1e-6), 0.3, 1.0))
-        feet = self._feet.copy()
+        feet0 = self._feet.copy()
+        # Levelling only on four feet before a crawl swing (or at rest): the trot's body
+        # rocks about the support diagonal, and correcting that rocking makes it worse.
+        feet = self._levelled_feet() if len(legs_swing) <= 1 else feet0
+        dz = feet[:, 2] - feet0[:, 2]
 
         def body_fn(tau, start=start, delta=delta, dur=dur):
             b, _ = gaitlib.min_jerk(np.asarray(tau) / dur)
             return start + np.multiply.outer(b, delta) if np.ndim(tau) else start + b * delta
 
         def feet_fn(tau):
-            return np.broadcast_to(feet, np.shape(tau) + (4, 3))
+            # the tilt correction is blended in with the body motion
+            b, _ = gaitlib.min_jerk(np.asarray(tau) / dur)
+            f = np.broadcast_to(feet0, np.shape(tau) + (4, 3)).copy()
+            f[..., 2] += np.multiply.outer(b, dz)
+            return f
 
         seg = self._build(t0, dur, 'shift', body_fn, feet_fn)
         if seg is None:
@@ -623,6 +812,25 @@ class WalkingController:
         seg.body_end = start + delta
         seg.legs = ()
         return seg
+
+    def _levelled_feet(self) -> np.ndarray:
+        """Stance contact points with their heights re-estimated through the measured tilt.
+
+        The commanded joint angles put the feet at ``FK(q)`` in the body frame; if the body is
+        really tilted by ``R_tilt``, they stand at ``R_tilt FK(q)`` relative to it. Planning the
+        next level-body motion on those heights levels the body (``attitude_gain`` of it).
+        Heights only: the feet's x-y stay the dead-reckoned ones.
+        """
+        feet = self._feet.copy()
+        g = self.config.attitude_gain
+        if self._R_tilt is None or g <= 0.0 or self._q_last is None:
+            return feet
+        rel = kinematics.forward(self.model, self._q_last.reshape(4, 3))
+        dz = (rel @ self._R_tilt.T)[:, 2] - rel[:, 2]
+        if not np.all(np.isfinite(dz)):
+            return feet
+        feet[:, 2] += g * dz
+        return feet
 
     def _make_swing(self, step: _Step, t0: float) -> Optional[_Segment]:
         m = self.model
@@ -705,7 +913,7 @@ class WalkingController:
         q = res.q.reshape(len(taus), 12)
         spline = CubicSpline(taus, q, axis=0, bc_type='clamped')
         seg = _Segment(kind=kind, t0=t0, duration=dur, spline=spline, body_fn=body_fn,
-                       feet_end=None, body_end=None)
+                       feet_end=None, body_end=None, feet_fn=feet_fn, knots=taus, roll=roll)
         seg.roll_end = roll[-1]
         return seg
 

@@ -99,3 +99,13 @@ def test_com_is_mass_weighted_and_moves_with_a_leg():
     com2 = K.com_base(m, K.inverse(m, feet))
     leg_share = np.sum(m.link_masses_kg[1:]) / m.total_mass_kg
     assert 0.2 * leg_share * 0.05 < com2[0] - com[0] < leg_share * 0.05
+
+
+def test_foot_forces_invert_the_static_torques():
+    # tau = -J^T f for a known ground force on every foot; the estimate recovers f.
+    m = load_robot_model('littledog')
+    q = K.standing_joint_angles(m) + np.random.default_rng(0).normal(0, 0.1, (4, 3))
+    f = np.array([[0.5, -0.2, 7.0], [0.0, 0.3, 5.0], [-0.4, 0.0, 9.0], [0.1, 0.1, 0.0]])
+    tau = -(np.swapaxes(K.jacobian(m, q), -1, -2) @ f[..., None])[..., 0]
+    np.testing.assert_allclose(K.foot_forces(m, q, tau), f, atol=1e-9)
+    np.testing.assert_allclose(K.foot_forces(m, q.reshape(12), tau.reshape(12)), f, atol=1e-9)

@@ -8,7 +8,7 @@ import pytest
 
 from terrain_perception import gait as G
 from terrain_perception.robot_model import load_robot_model
-from terrain_perception.sim.walk import make_flat_world, spawn_standing, walk
+from terrain_perception.sim.walk import WalkRunner, make_flat_world, spawn_standing, walk
 from terrain_perception.transforms import yaw_of
 
 DT = 1.0 / 500.0
@@ -112,3 +112,59 @@ def test_littledog_trots_on_flat_ground():
     assert not res.fell and res.steps_done == len(legs) and res.controller_error == ''
     assert np.linalg.norm(res.T_end[:2, 3] - (T0[:2, 3] + [0.6, 0.0])) < 0.05
     assert res.max_tilt_deg < 10.0
+
+
+def _surprise_walk(dz: float, sensing: bool):
+    """LittleDog crawls 0.3 m; the ground under one foothold is ``dz`` higher than the plan
+    says (a hidden 3 cm wide slab when dz > 0; the foothold planned in mid-air when dz < 0)."""
+    import pybullet
+    from terrain_perception.controller import WalkingConfig
+    m = load_robot_model('littledog')
+    client, plane = make_flat_world(DT)
+    robot = spawn_standing(client, m, dt_s=DT)
+    legs, pos = G.straight_footsteps(m, robot.base_pose(), 0.3)
+    k = 5                                   # the sixth footstep (LF, 0.3 m ahead)
+    if dz > 0:
+        half = [0.015, 0.015, 0.5 * dz]
+        client.changeDynamics(client.createMultiBody(
+            0, client.createCollisionShape(pybullet.GEOM_BOX, halfExtents=half),
+            basePosition=[pos[k, 0], pos[k, 1], half[2]]), -1, lateralFriction=1.0)
+    else:
+        pos[k, 2] -= dz                     # planned above the real ground
+    cfg = WalkingConfig(plan_timeout_s=1e6) if sensing else \
+        WalkingConfig(plan_timeout_s=1e6, contact_force_n=0.0, attitude_gain=0.0)
+    seen = {}
+
+    def on_step(t):
+        if res_ctl.steps_done == k + 1 and 'belief' not in seen:
+            seen['belief'] = res_ctl.feet[legs[k], 2]
+    runner = WalkRunner(client, robot, cfg, DT, ground_id=plane)
+    res_ctl = runner.controller
+    runner.run(legs, pos, 'walk', max_time_s=60.0, on_step=on_step)
+    res = runner.result()
+    client.disconnect()
+    return res, res_ctl.touchdowns, seen.get('belief', np.nan)
+
+
+def test_touchdown_sensing_stops_a_foot_on_higher_ground():
+    # The joint torques tell the controller the foot met the slab early: the swing ends
+    # there, the controller knows the foot stands 2 cm up, and the body stays level.
+    res, touch, belief = _surprise_walk(0.02, sensing=True)
+    assert not res.fell and res.steps_done == 12
+    assert touch['early'] >= 1
+    assert belief > 0.008                       # it knows the foot stands on something
+    blind, _, belief_blind = _surprise_walk(0.02, sensing=False)
+    assert abs(belief_blind) < 0.006            # blind: it believes the plan's height
+    # measured: 2.6 vs 14.6 deg
+    assert res.max_tilt_deg < 0.5 * blind.max_tilt_deg
+
+
+def test_touchdown_sensing_lowers_a_hanging_foot_before_the_next_swing():
+    # The foothold was planned 2 cm above the real ground: the foot ends its swing in the
+    # air; before the next leg lifts, the controller lowers it until it carries weight.
+    res, touch, _ = _surprise_walk(-0.02, sensing=True)
+    assert not res.fell and res.steps_done == 12
+    assert touch['probed'] >= 1
+    blind, _, _ = _surprise_walk(-0.02, sensing=False)
+    # measured: 7.5 vs 21.4 deg
+    assert res.max_tilt_deg < 0.5 * blind.max_tilt_deg

@@ -99,7 +99,8 @@ def test_topics_have_the_right_types_and_content(harness):
     assert spin_until(h.ex, lambda: all(h.got[t] for t in TOPICS), 20.0), \
         [t for t in TOPICS if not h.got[t]]
     model, session = h.node.session.model, h.node.session
-    # clock: monotonic sim time, matching the session
+    # clock: monotonic sim time, matching the session (the last one may still be in flight)
+    spin_until(h.ex, lambda: stamp_to_sec(h.got['/clock'][-1].clock) >= h.t - 0.05, 10.0)
     clocks = [stamp_to_sec(m.clock) for m in h.got['/clock']]
     assert np.all(np.diff(clocks) > 0) and clocks[-1] == pytest.approx(h.t, abs=0.05)
     # images: rgb8 of the scaled profile camera, paired stamps, textured

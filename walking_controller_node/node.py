@@ -7,7 +7,9 @@ Subscriptions:
     /footstep_plan     terrain_msgs/FootstepPlan (reliable, transient local): replaces the
                        pending footsteps (the step in progress finishes); a plan with a non-OK
                        status or GAIT_STAND clears them and the robot stands
-    /joint_states      sensor_msgs/JointState (sensor data): initial stance and stillness
+    /joint_states      sensor_msgs/JointState (sensor data): initial stance, stillness and,
+                       when it carries efforts, touchdown sensing (foot forces from torques)
+    /imu/data          sensor_msgs/Imu (sensor data): body tilt, levelled at each body shift
     /icp/correction    geometry_msgs/PoseStamped ``T_map_odom`` (reliable, transient local)
     /map/filled        terrain_msgs/TerrainGrid (reliable, transient local; with
                        ``use_terrain_map``): swing paths clear its elevation layer
@@ -34,7 +36,7 @@ from builtin_interfaces.msg import Duration
 from geometry_msgs.msg import PoseStamped
 from nav_msgs.msg import Odometry
 from rclpy.node import Node
-from sensor_msgs.msg import JointState
+from sensor_msgs.msg import Imu, JointState
 from std_msgs.msg import Header
 from terrain_msgs.msg import FootstepPlan, TerrainGrid
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
@@ -43,7 +45,7 @@ from terrain_perception import kinematics
 from terrain_perception.config import param
 from terrain_perception.controller import WalkingConfig, WalkingController
 from terrain_perception.robot_model import load_robot_model
-from terrain_perception.transforms import make_T, rot_z
+from terrain_perception.transforms import make_T, quat_to_R, rot_z
 from terrain_ros.conversions import (make_header, msg_to_grid, odometry, pose_to_matrix,
                                      sec_to_stamp)
 from terrain_ros.node import Counters, run_node
@@ -88,6 +90,8 @@ class WalkingControllerNode(Node):
         self.counters = Counters(self)
         self._q: Optional[np.ndarray] = None
         self._dq: Optional[np.ndarray] = None
+        self._tau: Optional[np.ndarray] = None
+        self._R_base: Optional[np.ndarray] = None
         self._started = False
         self._durations: list = []
         self.plans_received = 0
@@ -97,6 +101,7 @@ class WalkingControllerNode(Node):
         self.pub_capture = self.create_publisher(Header, '/capture_request', RELIABLE_QOS)
         self.create_subscription(FootstepPlan, '/footstep_plan', self._on_plan, LATCHED_QOS)
         self.create_subscription(JointState, '/joint_states', self._on_joint_state, SENSOR_QOS)
+        self.create_subscription(Imu, '/imu/data', self._on_imu, SENSOR_QOS)
         self.create_subscription(PoseStamped, '/icp/correction', self._on_correction,
                                  LATCHED_QOS)
         if self.node_cfg.use_terrain_map:
@@ -135,6 +140,22 @@ class WalkingControllerNode(Node):
         if len(msg.velocity) == len(names):
             dq = np.asarray(msg.velocity, dtype=float)[idx]
             self._dq = dq if np.all(np.isfinite(dq)) else None
+        self._tau = None
+        if len(msg.effort) == len(names):
+            tau = np.asarray(msg.effort, dtype=float)[idx]
+            self._tau = tau if np.all(np.isfinite(tau)) else None
+
+    def _on_imu(self, msg: Imu) -> None:
+        o = msg.orientation
+        quat = np.array([o.x, o.y, o.z, o.w], dtype=float)
+        n = float(np.linalg.norm(quat))
+        if not np.all(np.isfinite(quat)) or abs(n - 1.0) > 0.05:
+            self.counters.bump('imu_bad_orientation',
+                               f'IMU orientation {quat.tolist()} is not a unit quaternion; '
+                               f'ignored')
+            return
+        # R_world_base = R_world_imu R_imu_base
+        self._R_base = quat_to_R(quat / n) @ self.model.T_base_imu[:3, :3].T
 
     def _on_correction(self, msg: PoseStamped) -> None:
         try:
@@ -203,7 +224,7 @@ class WalkingControllerNode(Node):
             self._start(t)
         err_before = self.controller.last_error
         try:
-            self.controller.update(t, self._q, self._dq)
+            self.controller.update(t, self._q, self._dq, self._tau, self._R_base)
         except ValueError as exc:
             self.counters.bump('controller_error', f'controller refused the tick: {exc}')
             return

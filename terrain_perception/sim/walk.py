@@ -148,8 +148,8 @@ class WalkRunner:
         step_simulation = client.stepSimulation
         t_chunk = self.t
         while self.t < t_end and not self.fell:
-            q, dq, _ = robot.joint_states()
-            cmd = ctl.update(self.t, q, dq)
+            q, dq, tau = robot.joint_states()
+            cmd = ctl.update(self.t, q, dq, tau, robot.base_pose()[:3, :3])
             robot.set_joint_targets(cmd.positions, dq=cmd.velocities)
             step_simulation()
             self.t += self.dt_s
