@@ -12,6 +12,7 @@ problem when a message cannot be converted, so a node can count and log it and k
 
 from __future__ import annotations
 
+import array
 from typing import Dict, Mapping, Optional, Sequence, Tuple
 
 import numpy as np
@@ -234,7 +235,10 @@ def grid_to_msg(grid: GridMap, stamp=None, basic_layers: Sequence[str] = ()) -> 
             MultiArrayDimension(label='row_index', size=nx, stride=nx),
         ]
         arr.layout.data_offset = 0
-        arr.data = np.asarray(mat, dtype=np.float32).ravel(order='F')
+        # array.array: rclpy range-checks a numpy array's floats one by one in Python
+        # (~137 ms for a 300 x 300 x 7 map); an array('f') is taken as it is (~1 ms).
+        arr.data = array.array('f', np.asarray(mat, dtype=np.float32).ravel(order='F')
+                               .tobytes())
         data.append(arr)
     msg.data = data
     msg.outer_start_index = 0
