@@ -335,7 +335,7 @@ def body_pose(body_xy: np.ndarray, feet: np.ndarray, yaw: float, robot: RobotMod
                          M[0, 0] * rhs[1] - M[1, 0] * rhs[0]]) / det
     else:
         grad = np.linalg.lstsq(d, feet[:, 2] - feet[:, 2].mean(), rcond=None)[0]
-    sol = (float(feet[:, 2].mean()), grad)
+    z0 = float(feet[:, 2].mean())
     gnorm = float(np.hypot(*grad))
     if gnorm > np.tan(max_tilt_rad):
         grad = grad * (np.tan(max_tilt_rad) / gnorm)
@@ -348,7 +348,7 @@ def body_pose(body_xy: np.ndarray, feet: np.ndarray, yaw: float, robot: RobotMod
     T[:3, 0], T[:3, 2] = x, n
     T[:3, 1] = (n[1] * x[2] - n[2] * x[1], n[2] * x[0] - n[0] * x[2], n[0] * x[1] - n[1] * x[0])
     xy = np.asarray(body_xy, dtype=np.float64)
-    z_plane = sol[0] + np.dot(grad, xy - c_xy)
+    z_plane = z0 + np.dot(grad, xy - c_xy)
     height = robot.standing_height_m if height_m is None else float(height_m)
     T[:3, 3] = np.array([xy[0], xy[1], z_plane]) + height * n
     return T
@@ -743,6 +743,8 @@ class FootstepPlanner:
         ok = inside & self.allowed[ij[:, 0], ij[:, 1]]
         # A step back onto the foot's own cell is no step.
         ok &= np.hypot(*(xy - state.feet[leg, :2]).T) >= 0.75 * g.resolution_m
+        if not np.any(ok):
+            return None, 'no observed, finite-cost cell in its search area'
         if cfg.max_leg_spread_m > 0:
             # No foot further ahead of its nominal place than the rearmost other foot by more
             # than the spread: a foot left behind (an obstacle in its area) holds the others
@@ -750,8 +752,9 @@ class FootstepPlanner:
             fu, _ = self._uv(state.feet)
             lag = np.delete(fu - self.nom_u, leg)
             ok &= u - self.nom_u[leg] <= lag.min() + cfg.max_leg_spread_m
-        if not np.any(ok):
-            return None, 'no observed, finite-cost cell in its search area'
+            if not np.any(ok):
+                return None, (f'its search area {cfg.max_leg_spread_m} m or more ahead of the '
+                              'rearmost other foot')
         xy, u, v, ij = xy[ok], u[ok], v[ok], ij[ok]
         z = g[ELEVATION][ij[:, 0], ij[:, 1]].astype(np.float64)
         pts = np.c_[xy, z]
