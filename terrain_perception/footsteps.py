@@ -261,20 +261,24 @@ def candidate_mask(grid: GridMap, cfg: PlannerConfig) -> np.ndarray:
 
 def _inset_triangle(tri: np.ndarray, margin: float) -> Optional[np.ndarray]:
     """Vertices (3, 2) of the triangle shrunk by ``margin`` [m], or None if nothing is left."""
-    a, b, c = tri
-    area2 = (b[0] - a[0]) * (c[1] - a[1]) - (b[1] - a[1]) * (c[0] - a[0])
+    (ax, ay), (bx, by), (cx, cy) = np.asarray(tri, dtype=np.float64).tolist()
+    area2 = (bx - ax) * (cy - ay) - (by - ay) * (cx - ax)
     if abs(area2) < 1e-12:
         return None
-    if area2 < 0:
-        tri = tri[[0, 2, 1]]
-    e = np.roll(tri, -1, axis=0) - tri
-    lens = np.linalg.norm(e, axis=1)
-    inradius = abs(area2) / lens.sum()
+    # Side lengths opposite each vertex (scalar math: numpy's per-call cost dominates here).
+    la, lb, lc = math.hypot(cx - bx, cy - by), math.hypot(ax - cx, ay - cy), \
+        math.hypot(bx - ax, by - ay)
+    per = la + lb + lc
+    inradius = abs(area2) / per
     if inradius <= margin:
         return None
-    incentre = (tri * np.roll(lens, -1)[:, None]).sum(0) / lens.sum()  # opposite-side weights
+    ix, iy = (la * ax + lb * bx + lc * cx) / per, (la * ay + lb * by + lc * cy) / per
     # Homothety about the incentre shrinks every edge's distance by the same factor.
-    return incentre + (tri - incentre) * (1.0 - margin / inradius)
+    k = 1.0 - margin / inradius
+    out = np.array([[ax, ay], [bx, by], [cx, cy]])
+    if area2 < 0:
+        out = out[[0, 2, 1]]
+    return np.array([ix, iy]) + (out - [ix, iy]) * k
 
 
 def _project_to_triangle(p: np.ndarray, tri: np.ndarray) -> np.ndarray:
