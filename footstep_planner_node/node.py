@@ -8,6 +8,9 @@ Subscriptions:
     /imu/data        sensor_msgs/Imu (sensor data): absolute orientation -> gravity
     /icp/pose        geometry_msgs/PoseStamped (reliable): robot pose ``T_map_base``
     /goal_pose       geometry_msgs/PoseStamped (reliable): goal; without one, straight ahead
+    /walking/stance  terrain_msgs/Stance (reliable, transient local): the controller's feet
+                     after the step in progress and its next leg; plans start from there
+                     (without it: the nominal stance at the pose, first leg free)
 Publications:
     /footstep_plan            terrain_msgs/FootstepPlan (reliable, transient local)
     /footstep_plan/markers    visualization_msgs/MarkerArray (reliable)
@@ -34,7 +37,7 @@ from rclpy.node import Node
 from sensor_msgs.msg import Imu, PointCloud2
 from terrain_msgs.msg import ContactPatch, ContactPatchArray, Footstep as FootstepMsg
 from terrain_msgs.msg import FootstepPlan as FootstepPlanMsg
-from terrain_msgs.msg import TerrainGrid
+from terrain_msgs.msg import Stance, TerrainGrid
 from visualization_msgs.msg import Marker, MarkerArray
 
 from terrain_perception import footsteps as fs
@@ -65,6 +68,10 @@ class FootstepNodeConfig:
                                    'used for planning [s]', 0.0, 3600.0)
     imu_max_age_s: float = param(0.5, 'largest stamp gap between a cloud and the IMU sample '
                                  'used for its gravity [s]', 0.0, 3600.0)
+    use_stance: bool = param(True, 'start plans from the controller\'s /walking/stance (its '
+                             'real feet and next leg) instead of the nominal stance')
+    stance_max_age_s: float = param(30.0, 'ignore a stance older than this (vs the map '
+                                    'stamp) [s]', 0.0, 1e6)
     cost_grid_max: float = param(1.0, 'cost shown as 100 in /map/cost_grid (higher is '
                                  'clipped)', 1e-9, 1e9)
     diagnostics_period_s: float = param(1.0, 'period of the counters message [s]', 0.05, 3600.0)
@@ -153,6 +160,7 @@ class FootstepPlannerNode(Node):
         self.grid: Optional[GridMap] = None
         self.map_problem: Optional[fs.FootstepPlan] = None
         self.T_map_base: Optional[np.ndarray] = None
+        self.stance: Optional[tuple] = None     # (feet (4, 3) map, next leg, stamp [s])
         self.goal_xy: Optional[np.ndarray] = None
         self.imu: Optional[tuple] = None          # (stamp_s, quaternion xyzw)
         self.patches_map: Optional[PatchSet] = None
@@ -173,6 +181,7 @@ class FootstepPlannerNode(Node):
         self.create_subscription(Imu, '/imu/data', self._on_imu, SENSOR_QOS)
         self.create_subscription(PoseStamped, '/icp/pose', self._on_pose, RELIABLE_QOS)
         self.create_subscription(PoseStamped, '/goal_pose', self._on_goal, RELIABLE_QOS)
+        self.create_subscription(Stance, '/walking/stance', self._on_stance, LATCHED_QOS)
         self.create_timer(self.node_cfg.diagnostics_period_s, self.counters.publish)
 
     # ------------------------------------------------------------------ parameters
@@ -220,6 +229,18 @@ class FootstepPlannerNode(Node):
             self.T_map_base = pose_to_matrix(msg.pose)
         except ValueError as exc:
             self.counters.bump('bad_pose', f'/icp/pose refused: {exc}')
+
+    def _on_stance(self, msg: Stance) -> None:
+        feet = np.array([[p.x, p.y, p.z] for p in msg.feet], dtype=np.float64)
+        if feet.shape != (4, 3) or not np.all(np.isfinite(feet)):
+            self.counters.bump('bad_stance', '/walking/stance feet are not 4 finite points')
+            return
+        if msg.next_leg not in (0, 1, 2, 3, Stance.LEG_NONE):
+            self.counters.bump('bad_stance', f'/walking/stance next_leg {msg.next_leg} is not '
+                                             f'a leg')
+            return
+        self.stance = (feet, None if msg.next_leg == Stance.LEG_NONE else int(msg.next_leg),
+                       stamp_to_sec(msg.header.stamp))
 
     def _on_goal(self, msg: PoseStamped) -> None:
         p = msg.pose.position
@@ -293,7 +314,12 @@ class FootstepPlannerNode(Node):
                     and abs(self.grid.stamp_s - self.patches_stamp)
                     <= self.node_cfg.patch_max_age_s):
                 patches = (self.patches_map.vertex, self.patches_map.radius)
-            plan = self.planner.plan(self.T_map_base, self.goal_xy, patches=patches)
+            feet, first_leg = None, None
+            if self.node_cfg.use_stance and self.stance is not None and \
+                    abs(self.grid.stamp_s - self.stance[2]) <= self.node_cfg.stance_max_age_s:
+                feet, first_leg = self.stance[0], self.stance[1]
+            plan = self.planner.plan(self.T_map_base, self.goal_xy, feet=feet,
+                                     first_leg=first_leg, patches=patches)
         self._publish_plan(plan, frame, stamp)
         return plan
 

@@ -5,10 +5,13 @@ Subscriptions (reliable, transient local):
                          ``observed`` (1 = measured) and ``upper_bound`` [m]
     /map/capture_poses   geometry_msgs/PoseArray: camera (optical frame) poses in the grid's
                          frame; each capture bounds the cells in its view cone
+    /walking/stance      terrain_msgs/Stance: the feet the robot stands on (``map``); blind
+                         cells near them take the plane through them (layer ``contact``)
 Publications:
     /map/filled          terrain_msgs/TerrainGrid (reliable, transient local), layers
                          ``elevation`` (observed + filled) [m], ``observed`` [0/1],
-                         ``upper_bound`` [m] (NaN = none), ``filled`` [0/1], ``cost`` [-]
+                         ``upper_bound`` [m] (NaN = none), ``filled`` [0/1], ``cost`` [-],
+                         ``contact`` [0/1] (height from the stance feet)
     ~/diagnostics        diagnostic_msgs/DiagnosticArray: counters of refused input
 
 The core (:class:`terrain_perception.fill.TerrainFiller`) keeps a running-minimum bound layer
@@ -40,7 +43,7 @@ import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray  # noqa: F401  (type published by Counters)
 from geometry_msgs.msg import PoseArray
 from rclpy.node import Node
-from terrain_msgs.msg import TerrainGrid
+from terrain_msgs.msg import Stance, TerrainGrid
 
 from terrain_perception.config import param
 from terrain_perception.features import CostConfig
@@ -117,6 +120,7 @@ class TerrainFillNode(Node):
         self._cams: np.ndarray = np.zeros((0, 4, 4))   # capture poses T_map_camera
         self._cams_frame: Optional[str] = None
         self._dirty = False
+        self._stance: Optional[tuple] = None           # (feet (4, 3), frame)
         self.last_output: Optional[GridMap] = None
         self.published = 0
         self.skipped = 0            # grids superseded by a newer one before being processed
@@ -126,6 +130,7 @@ class TerrainFillNode(Node):
         self.pub = self.create_publisher(TerrainGrid, '/map/filled', LATCHED_QOS)
         self.create_subscription(TerrainGrid, '/map/fine', self._on_grid, LATCHED_QOS)
         self.create_subscription(PoseArray, '/map/capture_poses', self._on_poses, LATCHED_QOS)
+        self.create_subscription(Stance, '/walking/stance', self._on_stance, LATCHED_QOS)
         self.create_timer(self.node_cfg.process_period_s, self._process)
         self.create_timer(self.node_cfg.diagnostics_period_s, self.counters.publish)
 
@@ -193,6 +198,14 @@ class TerrainFillNode(Node):
         self._dirty = True
         self._process_if_paired()
 
+    def _on_stance(self, msg: Stance) -> None:
+        feet = np.array([[p.x, p.y, p.z] for p in msg.feet], dtype=np.float64)
+        if feet.shape != (4, 3) or not np.all(np.isfinite(feet)):
+            self.counters.bump('bad_stance', '/walking/stance feet are not 4 finite points; '
+                                             'ignored')
+            return
+        self._stance = (feet, msg.header.frame_id)
+
     def _process_if_paired(self) -> None:
         """Update at once when the newest grid and poses come from the same capture."""
         g, p = self._grid_msg, self._poses_msg
@@ -236,9 +249,16 @@ class TerrainFillNode(Node):
             self.counters.bump('frame_mismatch', f'capture poses are in {self._cams_frame!r}, '
                                f'the grid in {grid.frame_id!r}; poses ignored')
             cams = np.zeros((0, 4, 4))
+        feet = None
+        if self._stance is not None:
+            if self._stance[1] in ('', grid.frame_id):
+                feet = self._stance[0]
+            else:
+                self.counters.bump('frame_mismatch', f'stance is in {self._stance[1]!r}, the '
+                                   f'grid in {grid.frame_id!r}; stance ignored')
         c0 = time.process_time()
         try:
-            out = self.filler.update(grid, cams)
+            out = self.filler.update(grid, cams, feet)
         except ValueError as exc:
             self.counters.bump('bad_grid', f'{exc}; keeping the last output')
             self._grid = None               # new poses alone do not retry a refused grid

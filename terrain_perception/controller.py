@@ -233,6 +233,7 @@ class WalkingController:
         self._q_last = None
         self._t = 0.0
         self._pending_swing: Optional[_Step] = None
+        self._last_legs: tuple = ()          # legs of the latest swing started
         self._phi_ref = None       # (4, 2) shank pitch and roll angles when the contact was set
         self.steps_done = 0
         self.last_margin_m = np.nan
@@ -433,6 +434,28 @@ class WalkingController:
         """Segment in progress, None when standing."""
         seg = self._seg
         return None if seg is None else Phase(seg.kind, seg.legs, seg.t0, seg.duration)
+
+    def upcoming_stance(self) -> tuple:
+        """``(feet (4, 3) odom, next_leg)``: where the feet will stand once the step in
+        progress (its body shift and swing) is done, and the leg after it in the crawl order
+        (None before the first step or after a trot pair). A new plan should start here:
+        :meth:`set_footsteps` lets the step in progress finish."""
+        if self._feet is None:
+            return None, None
+        feet = self._feet.copy()
+        last = self._last_legs
+        seg = self._seg
+        if seg is not None and seg.kind == 'swing':
+            feet[list(seg.legs)] = seg.feet_end[list(seg.legs)]
+            last = seg.legs
+        if self._pending_swing is not None:
+            step = self._pending_swing
+            feet[list(step.legs)] = step.targets
+            last = step.legs
+        if not last or len(last) != 1:
+            return feet, None
+        order = list(gaitlib.CRAWL_ORDER)
+        return feet, order[(order.index(int(last[0])) + 1) % 4]
 
     @property
     def pending_steps(self) -> int:
@@ -870,6 +893,7 @@ class WalkingController:
         seg.body_end = body
         seg.legs = tuple(legs)
         seg.moves_body = False
+        self._last_legs = tuple(legs)
         return seg
 
     def _apex(self, p0: np.ndarray, p1: np.ndarray) -> float:

@@ -784,6 +784,29 @@ class FillerConfig:
         200, 'a touched hole (8-connected fillable region) of at most this many cells is '
         'refilled whole (no seam in small holes); larger ones only near the change [cells]',
         0, 10 ** 8)
+    contact_support_radius_m: float = param(
+        0.06, 'blind cells within this distance of a foot the robot stands on take the height '
+              'of the plane through its stance feet (paper 002 treats the blind area as the '
+              'ground plane; here only where the feet prove it), layer `contact` = 1; kept '
+              'until observed [m] (0 = off)', 0.0, 10.0)
+
+
+CONTACT = 'contact'
+"""Output layer: 1 where the height is the plane through the robot's stance feet."""
+
+
+def _contact_support(grid, feet: np.ndarray, radius_m: float) -> tuple:
+    """``(mask, z)`` on ``grid``: cells within ``radius_m`` of a foot contact point
+    ``feet`` (K >= 3, 3), and the least-squares plane ``z = a x + b y + c`` through the feet."""
+    A = np.c_[feet[:, :2], np.ones(len(feet))]
+    coef, *_ = np.linalg.lstsq(A, feet[:, 2], rcond=None)
+    nx, ny = grid.shape
+    r = grid.resolution_m
+    x = grid.origin_xy[0] + (np.arange(nx) + 0.5) * r
+    y = grid.origin_xy[1] + (np.arange(ny) + 0.5) * r
+    X, Y = np.meshgrid(x, y, indexing='ij')
+    d2 = np.min((X[..., None] - feet[:, 0]) ** 2 + (Y[..., None] - feet[:, 1]) ** 2, axis=-1)
+    return d2 <= radius_m ** 2, coef[0] * X + coef[1] * Y + coef[2]
 
 
 def _pose_keys(poses: np.ndarray) -> list:
@@ -938,16 +961,20 @@ class TerrainFiller:
             return None
         out = {k: _shift(prev[k], off_i, grid.shape)
                for k in ('obs', 'ub', 'los', 'elev', 'cost')}
+        out['contact'] = _shift(prev['contact'], off_i, grid.shape, False)
         out['new'] = _shift(np.ones(prev['obs'].shape, bool), off_i, grid.shape, False) == 0
         out['keys'] = prev['keys']
         return out
 
-    def update(self, grid, camera_poses: np.ndarray = np.zeros((0, 3))):
+    def update(self, grid, camera_poses: np.ndarray = np.zeros((0, 3)),
+               stance_feet: Optional[np.ndarray] = None):
         """Fill ``grid`` (a GridMap) and return the output GridMap (see class docstring).
 
         ``camera_poses``: (K, 4, 4) capture poses T_grid_camera (optical frame, z = viewing
         direction) or (K, 3) positions (then every direction counts as looked at); all the
-        captures the map holds, old ones included (only new ones cost work)."""
+        captures the map holds, old ones included (only new ones cost work).
+        ``stance_feet``: (4, 3) contact points the robot stands on (grid frame), or None: blind
+        cells near them take the plane through them (``contact_support_radius_m``)."""
         from terrain_perception.features import cost_map, window_cells
         from terrain_perception.grid import (COST, ELEVATION, FILLED, OBSERVED, UPPER_BOUND,
                                              GridMap)
@@ -970,7 +997,20 @@ class TerrainFiller:
         w = self.fill_config.window_cells
         fc = self.filler_config
         blind = ~observed & np.isnan(ub)
-        fillable = ~observed & ~blind if fc.blind_area == 'unknown' else ~observed
+        # blind cells the feet vouch for: the plane through the stance feet, kept until seen
+        contact = np.zeros(grid.shape, bool) if prev is None else prev['contact'] & ~observed
+        contact_z = np.full(grid.shape, np.nan) if prev is None else \
+            np.where(contact, prev['elev'], np.nan)
+        if stance_feet is not None and fc.contact_support_radius_m > 0:
+            feet = np.asarray(stance_feet, np.float64).reshape(-1, 3)
+            if len(feet) >= 3 and np.all(np.isfinite(feet)):
+                new_c, plane_z = _contact_support(grid, feet, fc.contact_support_radius_m)
+                new_c &= blind & ~contact
+                contact_z[new_c] = plane_z[new_c]
+                contact |= new_c
+        blind &= ~contact
+        fillable = ~observed & ~blind & ~contact if fc.blind_area == 'unknown' else \
+            ~observed & ~contact
         same = lambda a, b: (a == b) | (np.isnan(a) & np.isnan(b))  # noqa: E731
         if prev is None:
             refill = fillable
@@ -992,6 +1032,7 @@ class TerrainFiller:
                 hit = hit[(hit > 0) & (sizes[hit] <= fc.whole_hole_cells)]
                 refill |= np.isin(labels, hit)
         elev = np.where(observed, heights, np.nan)
+        elev[contact] = contact_z[contact]
         if prev is not None:
             keep = fillable & ~refill
             elev[keep] = prev['elev'][keep]
@@ -1035,14 +1076,16 @@ class TerrainFiller:
                 sub = cost_map(elev[c0:c1, d0:d1], grid.resolution_m, cc)
                 cost[r0:r1, s0:s1] = sub[r0 - c0:r1 - c0, s0 - d0:s1 - d0]
                 region_box = (int(r0), int(r1), int(s0), int(s1))
-        filled_mask = ~observed & np.isfinite(elev)
+        filled_mask = ~observed & ~contact & np.isfinite(elev)
         out = GridMap(grid.resolution_m, grid.origin_xy, grid.shape, {
             ELEVATION: elev, OBSERVED: observed.astype(np.float32), UPPER_BOUND: ub,
-            FILLED: filled_mask.astype(np.float32), COST: cost},
+            FILLED: filled_mask.astype(np.float32), COST: cost,
+            CONTACT: contact.astype(np.float32)},
             frame_id=grid.frame_id, stamp_s=grid.stamp_s)
         # commit the state only now: a ValueError above leaves it untouched
         self._prev = {'res': grid.resolution_m, 'origin': grid.origin_xy, 'obs': heights,
-                      'ub': ub, 'los': los, 'elev': elev, 'cost': cost, 'keys': set(keys)}
+                      'ub': ub, 'los': los, 'elev': elev, 'cost': cost, 'keys': set(keys),
+                      'contact': contact}
         self.last_region = region_box
         self.last_refilled = self_refilled
         self.last_new_captures = int(new.sum())

@@ -237,8 +237,10 @@ def unsafe_cells(heights: np.ndarray, resolution_m: float, foot_radius_m: float,
 
 def candidate_mask(grid: GridMap, cfg: PlannerConfig) -> np.ndarray:
     """Cells allowed as footholds: known height and either observed, or (never observed and)
-    filled with a finite upper bound within ``max_bound_gap_m`` of the filled height. A grid
-    without an ``observed`` layer (e.g. ground truth) allows every known cell."""
+    filled with a finite upper bound within ``max_bound_gap_m`` of the filled height, or
+    given the height of the plane through the stance feet (layer ``contact``, blind cells the
+    feet stood near). A grid without an ``observed`` layer (e.g. ground truth) allows every
+    known cell."""
     h = grid[ELEVATION]
     ok = np.isfinite(h)
     if OBSERVED in grid:
@@ -251,8 +253,16 @@ def candidate_mask(grid: GridMap, cfg: PlannerConfig) -> np.ndarray:
             bounded = np.zeros_like(obs)
         if FILLED in grid:
             bounded &= grid[FILLED] > 0.5
-        ok &= obs | bounded
+        ok &= obs | bounded | _contact_layer(grid)
     return ok
+
+
+def _contact_layer(grid: GridMap) -> np.ndarray:
+    """Cells whose height the fill node took from the robot's stance feet (layer
+    ``contact``): never seen, but the feet stood there."""
+    if 'contact' not in grid:
+        return np.zeros(grid.shape, bool)
+    return grid['contact'] > 0.5
 
 
 # --------------------------------------------------------------------------------------------

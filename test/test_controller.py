@@ -201,3 +201,36 @@ def test_long_trot_steps_are_refused():
     ctl.update(0.0)
     assert 'trot step of LF' in ctl.last_error and ctl.steps_done == 0
     assert ctl.status == 'standing'
+
+
+def test_upcoming_stance_is_where_a_new_plan_starts():
+    # During a step, the stance after it (swing target included) and the next crawl leg.
+    m = load_robot_model('littledog')
+    ctl = WalkingController(m, WalkingConfig(plan_timeout_s=1e3, touchdown_depth_m=0.0))
+    ctl.reset(0.0, None, make_T(np.eye(3), [0.0, 0.0, m.standing_height_m]))
+    feet0, nxt = ctl.upcoming_stance()
+    assert nxt is None                                   # no step yet: any leg may start
+    legs, pos = G.straight_footsteps(m, ctl.odom_pose, 0.3)
+    ctl.set_footsteps(legs, pos, 'walk', 0.0)
+    seen = []
+
+    def tick(t, cmd):
+        ph = ctl.phase
+        if ph is not None and (not seen or seen[-1][0] != (ph.kind, ph.t0)):
+            feet, nxt = ctl.upcoming_stance()
+            seen.append(((ph.kind, ph.t0), ctl.steps_done, feet, nxt))
+        if ctl.steps_done >= 2:
+            ctl.clear_plan()
+    _run(ctl, 0.0, 30.0, tick)
+    # In the first shift and swing: leg legs[0] is (or will be) at its target, legs[1] next.
+    for _, done, feet, nxt in seen[:2]:
+        assert done == 0
+        np.testing.assert_allclose(feet[legs[0]], pos[0], atol=1e-9)
+        assert nxt == legs[1] == list(G.CRAWL_ORDER)[(list(G.CRAWL_ORDER).index(legs[0]) + 1) % 4]
+    # At rest after the plan was cleared (the step under way when it was finished too):
+    # every executed target reached, the following leg next.
+    done = ctl.steps_done
+    assert ctl.phase is None and 2 <= done < len(legs)
+    feet, nxt = ctl.upcoming_stance()
+    np.testing.assert_allclose(feet[legs[:done]], pos[:done], atol=0.5 * m.foot_radius_m)
+    assert nxt == legs[done]

@@ -6,7 +6,7 @@ from scipy import ndimage
 
 from terrain_perception.config import make_config
 from terrain_perception.features import CostConfig, cost_map
-from terrain_perception.fill import FillConfig, FillerConfig, TerrainFiller, fill
+from terrain_perception.fill import CONTACT, FillConfig, FillerConfig, TerrainFiller, fill
 from terrain_perception.grid import (COST, ELEVATION, FILLED, OBSERVED, UPPER_BOUND, GridMap)
 
 RES = 0.01
@@ -48,7 +48,8 @@ def test_output_layers(filler):
     seen = two_holes()
     cam = np.array([[0.2, 0.2, 0.3], [-0.1, 0.2, 0.3]])
     out = filler.update(make_grid(truth, seen), cam)
-    assert set(out.layers) == {ELEVATION, OBSERVED, UPPER_BOUND, FILLED, COST}
+    assert set(out.layers) == {ELEVATION, OBSERVED, UPPER_BOUND, FILLED, COST, CONTACT}
+    assert not out[CONTACT].any()                      # no stance given
     np.testing.assert_array_equal(out[OBSERVED], seen.astype(np.float32))   # fill != observed
     np.testing.assert_array_equal(out[FILLED], (~seen).astype(np.float32))
     np.testing.assert_array_equal(out[ELEVATION][seen], truth[seen].astype(np.float32))
@@ -273,3 +274,36 @@ def test_fill_mask_leaves_other_missing_cells_unknown():
     assert np.isfinite(part.heights[10:20, 10:13]).all()
     assert np.isnan(part.heights[10:20, 13:20]).all()
     np.testing.assert_array_equal(part.filled, mask & np.isnan(h))
+
+
+def test_blind_cells_under_the_feet_take_the_stance_plane():
+    # Nothing seen in the left half and no capture: blind. The robot stands on a 2 deg
+    # slope there; cells within the support radius of its feet get that plane, marked
+    # `contact`, not observed and not filled; the rest of the blind area stays unknown; a
+    # later observation replaces them.
+    lib = [smooth(50, s) for s in (1, 2)]
+    filler = TerrainFiller(lib, RES, make_config(FillConfig, {'samples': 30}))  # unknown
+    n = 40
+    truth = np.zeros((n, n))
+    seen = np.zeros((n, n), bool)
+    seen[:, 25:] = True
+    slope = np.tan(np.radians(2.0))
+    feet = np.array([[0.05, 0.05, 0.0], [0.05, 0.15, 0.0], [0.15, 0.05, 0.0],
+                     [0.15, 0.15, 0.0]])
+    feet[:, 2] = 0.01 + slope * feet[:, 0]
+    out = filler.update(make_grid(truth, seen), np.zeros((0, 3)), feet)
+    r = filler.filler_config.contact_support_radius_m
+    x = (np.arange(n) + 0.5) * RES
+    X, Y = np.meshgrid(x, x, indexing='ij')
+    near = np.min(np.hypot(X[..., None] - feet[:, 0], Y[..., None] - feet[:, 1]), -1) <= r
+    want = near & ~seen
+    np.testing.assert_array_equal(out[CONTACT] > 0.5, want)
+    np.testing.assert_allclose(out[ELEVATION][want], (0.01 + slope * X)[want], atol=1e-9)
+    assert not out[OBSERVED][want].any() and not out[FILLED][want].any()
+    assert np.isnan(out[ELEVATION][~seen & ~want]).all()
+    # the feet move on: the supported cells are remembered; seeing them replaces the plane
+    seen2 = seen.copy()
+    seen2[:10] = True
+    out2 = filler.update(make_grid(truth, seen2), np.zeros((0, 3)))
+    np.testing.assert_array_equal(out2[CONTACT] > 0.5, want & ~seen2)
+    np.testing.assert_array_equal(out2[ELEVATION][seen2], 0.0)

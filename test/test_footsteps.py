@@ -315,3 +315,22 @@ def test_a_foot_left_behind_holds_the_others_back():
         cur[s.leg] = s.position
     rh = [s for s in plan.footsteps if s.leg == fs.RH]
     assert rh and rh[0].position[0] > feet[fs.RH, 0] + 0.05
+
+
+def test_candidate_cells_observed_bounded_or_vouched_for_by_the_feet():
+    n = 6
+    elev = np.zeros((n, n), np.float32)
+    observed = np.zeros((n, n), np.float32)
+    observed[0] = 1
+    filled = 1.0 - observed
+    ub = np.full((n, n), np.nan, np.float32)
+    ub[1] = 0.01                                   # bounded 1 cm above the fill
+    ub[2] = 0.2                                    # bound far above: not trusted
+    contact = np.zeros((n, n), np.float32)
+    contact[3] = 1
+    filled[3] = 0
+    g = GridMap(0.01, (0.0, 0.0), (n, n), {'elevation': elev, 'observed': observed,
+                                           'upper_bound': ub, 'filled': filled,
+                                           'contact': contact})
+    ok = fs.candidate_mask(g, fs.PlannerConfig(max_bound_gap_m=0.02))
+    np.testing.assert_array_equal(ok.any(axis=1), [True, True, False, True, False, False])

@@ -4,18 +4,19 @@ explanatory empty plan and the node keeps running."""
 
 import numpy as np
 import pytest
-from geometry_msgs.msg import PoseStamped
+from geometry_msgs.msg import Point, PoseStamped
 from nav_msgs.msg import OccupancyGrid
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from sensor_msgs.msg import Imu, PointCloud2
-from terrain_msgs.msg import ContactPatchArray, FootstepPlan, TerrainGrid
+from terrain_msgs.msg import ContactPatchArray, Footstep, FootstepPlan, Stance, TerrainGrid
 
 from conftest import spin_until
 from footstep_planner_node.node import FootstepPlannerNode
 from terrain_perception import features
 from terrain_perception import footsteps as fs
 from terrain_perception.camera import PinholeCamera
+from terrain_perception.gait import nominal_feet_world
 from terrain_perception.grid import GridMap
 from terrain_perception.raycast import raycast_points
 from terrain_perception.robot_model import load_robot_model
@@ -126,6 +127,37 @@ def test_map_pose_goal_give_the_core_plan_and_a_cost_grid(ros_context, executor)
     assert spin_until(executor, lambda: len(h.costs) > 1, 5.0)
     assert max(h.costs[-1].data) == 100
 
+
+
+def test_plans_start_from_the_controllers_stance(ros_context, executor):
+    # The controller says where its feet will stand and which leg is next: the plan starts
+    # there (not from the nominal stance), and a malformed stance is refused and counted.
+    h = Harness(ros_context, executor)
+    h.pose(_pose_T())
+    hh = np.zeros((150, 150))
+    hh[88:102, 75:90] = 0.03                                # walk gait (obstacle ahead)
+    pub = h.io.create_publisher(Stance, '/walking/stance', LATCHED_QOS)
+    feet = np.array(nominal_feet_world(ROBOT, _pose_T()), dtype=float)
+    feet[0, 0] += 0.03                                      # LF already a step ahead
+    msg = Stance()
+    msg.header.frame_id = 'map'
+    msg.header.stamp.sec = 1001
+    msg.feet = [Point(x=float(p[0]), y=float(p[1]), z=float(p[2])) for p in feet]
+    msg.next_leg = Footstep.LEG_RH
+    pub.publish(msg)
+    assert spin_until(executor, lambda: h.node.stance is not None, 5.0)
+    plan = h.send_map(grid_to_msg(_grid(hh)), sec=1001)
+    assert plan.status == FootstepPlan.STATUS_OK, plan.status_text
+    want = fs.plan_footsteps(_grid(hh), ROBOT, _pose_T(), feet=feet, first_leg=Footstep.LEG_RH)
+    assert [f.leg for f in plan.footsteps] == [s.leg for s in want.footsteps]
+    assert plan.footsteps[0].leg == Footstep.LEG_RH
+    got = np.array([[f.position.x, f.position.y, f.position.z] for f in plan.footsteps])
+    np.testing.assert_allclose(got, [s.position for s in want.footsteps], atol=1e-6)
+    bad = Stance()
+    bad.feet = [Point(x=float('nan'))] * 4
+    pub.publish(bad)
+    assert spin_until(executor, lambda: h.node.counters.counts.get('bad_stance', 0) > 0, 5.0)
+    assert h.node.stance[1] == Footstep.LEG_RH                 # the good one is kept
 
 def test_bad_inputs_give_explanatory_empty_plans(ros_context, executor):
     h = Harness(ros_context, executor)

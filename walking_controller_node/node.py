@@ -20,6 +20,8 @@ Publications:
     /odom/dead_reckoning   nav_msgs/Odometry odom -> base_link along the desired trajectory
                            (reliable); the ICP prior
     /capture_request       std_msgs/Header (reliable): the body is still, take a picture
+    /walking/stance        terrain_msgs/Stance (reliable, transient local): feet after the
+                           step in progress and the next leg, in ``map``, on every change
     ~/diagnostics          diagnostic_msgs/DiagnosticArray: counters of refused input
 
 Time is the node clock (``use_sim_time`` with the simulator). The odom frame starts equal to
@@ -33,19 +35,19 @@ from typing import Optional
 
 import numpy as np
 from builtin_interfaces.msg import Duration
-from geometry_msgs.msg import PoseStamped
+from geometry_msgs.msg import Point, PoseStamped
 from nav_msgs.msg import Odometry
 from rclpy.node import Node
 from sensor_msgs.msg import Imu, JointState
 from std_msgs.msg import Header
-from terrain_msgs.msg import FootstepPlan, TerrainGrid
+from terrain_msgs.msg import FootstepPlan, Stance, TerrainGrid
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
 from terrain_perception import kinematics
 from terrain_perception.config import param
 from terrain_perception.controller import WalkingConfig, WalkingController
 from terrain_perception.robot_model import load_robot_model
-from terrain_perception.transforms import make_T, quat_to_R, rot_z
+from terrain_perception.transforms import make_T, quat_to_R, rot_z, transform_points
 from terrain_ros.conversions import (make_header, msg_to_grid, odometry, pose_to_matrix,
                                      sec_to_stamp)
 from terrain_ros.node import Counters, run_node
@@ -99,6 +101,8 @@ class WalkingControllerNode(Node):
         self.pub_cmd = self.create_publisher(JointTrajectory, '/joint_commands', RELIABLE_QOS)
         self.pub_odom = self.create_publisher(Odometry, '/odom/dead_reckoning', RELIABLE_QOS)
         self.pub_capture = self.create_publisher(Header, '/capture_request', RELIABLE_QOS)
+        self.pub_stance = self.create_publisher(Stance, '/walking/stance', LATCHED_QOS)
+        self._stance_key = None
         self.create_subscription(FootstepPlan, '/footstep_plan', self._on_plan, LATCHED_QOS)
         self.create_subscription(JointState, '/joint_states', self._on_joint_state, SENSOR_QOS)
         self.create_subscription(Imu, '/imu/data', self._on_imu, SENSOR_QOS)
@@ -252,6 +256,27 @@ class WalkingControllerNode(Node):
         self.pub_odom.publish(odometry(T, 'odom', 'base_link', t, R.T @ v, R.T @ w))
         if c.request_captures and self.controller.capture_due(t):
             self.pub_capture.publish(Header(stamp=sec_to_stamp(t), frame_id='base_link'))
+        self._publish_stance(t)
+
+    def _publish_stance(self, t: float) -> None:
+        ctl = self.controller
+        feet, next_leg = ctl.upcoming_stance()
+        if feet is None:
+            return
+        feet = transform_points(ctl.T_map_odom, feet)
+        key = (np.round(feet, 4).tobytes(), next_leg, ctl.steps_done, ctl.pending_steps,
+               ctl.last_error)
+        if key == self._stance_key:
+            return
+        self._stance_key = key
+        msg = Stance()
+        msg.header = make_header('map', t)
+        msg.feet = [Point(x=float(p[0]), y=float(p[1]), z=float(p[2])) for p in feet]
+        msg.next_leg = Stance.LEG_NONE if next_leg is None else int(next_leg)
+        msg.steps_done = int(ctl.steps_done)
+        msg.pending_steps = int(ctl.pending_steps)
+        msg.last_error = ctl.last_error
+        self.pub_stance.publish(msg)
 
 
 def main(args=None) -> int:
