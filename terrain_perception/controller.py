@@ -949,10 +949,51 @@ class WalkingController:
         return np.stack([c * dx - s * dy, s * dx + c * dy, np.zeros_like(dx)], axis=-1)
 
 
+def check_footsteps(model: RobotModel, config: WalkingConfig, feet: np.ndarray,
+                    legs: np.ndarray, positions: np.ndarray, gait: str = 'walk',
+                    height: gaitlib.HeightFn = None) -> tuple:
+    """Dry run of the controller's own feasibility checks: ``(n, reason)``, how many of the
+    footsteps ``legs``/``positions`` it would execute from the stance ``feet`` (4, 3) (all in
+    one frame) before refusing one, and why ('' if none is refused).
+
+    The body starts at its nominal pose over ``feet`` (as after a recentring). A planner can
+    call it before publishing, so that its plans and the controller's stability and reach
+    model agree (they are different models: the planner's body is a point at the COG).
+    """
+    feet = np.asarray(feet, dtype=float).reshape(4, 3)
+    legs = np.asarray(legs, dtype=int).reshape(-1)
+    positions = np.asarray(positions, dtype=float).reshape(-1, 3)
+    ctl = WalkingController(model, config, height=height)
+    body = gaitlib.body_pose_from_feet(feet, model.standing_height_m)
+    q = ctl._ik(gaitlib.pose_to_T(body), feet)
+    if q is None:
+        return 0, 'the stance itself is out of reach'
+    ctl._feet, ctl._body, ctl._q_last = feet.copy(), body, q.reshape(12)
+    ctl._phi_ref = _shank_angles(q.reshape(4, 3))
+    try:
+        ctl.set_footsteps(legs, positions, gait, 0.0)
+    except ValueError as exc:
+        return 0, str(exc)
+    steps, done = list(ctl._queue), 0
+    for step in steps:
+        seg = ctl._make_shift(step, 0.0)
+        if seg is None:
+            return done, ctl.last_error
+        ctl._seg = seg
+        ctl._finish_segment()
+        seg = ctl._make_swing(step, 0.0)
+        if seg is None or seg.kind != 'swing':
+            return done, ctl.last_error
+        ctl._seg = seg
+        ctl._finish_segment()
+        done += len(step.legs)
+    return done, ''
+
+
 def _shank_angles(q: np.ndarray) -> np.ndarray:
     """``(..., 4, 2)`` shank pitch (hip flexion + knee) and roll (abduction) [rad]."""
     q = np.asarray(q, dtype=float)
     return np.stack([q[..., 1] + q[..., 2], q[..., 0]], axis=-1)
 
 
-__all__ = ['WalkingConfig', 'WalkingController', 'JointCommand', 'Phase']
+__all__ = ['WalkingConfig', 'WalkingController', 'JointCommand', 'Phase', 'check_footsteps']

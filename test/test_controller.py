@@ -10,7 +10,7 @@ import pytest
 
 from terrain_perception import gait as G
 from terrain_perception import kinematics as K
-from terrain_perception.controller import WalkingConfig, WalkingController
+from terrain_perception.controller import WalkingConfig, WalkingController, check_footsteps
 from terrain_perception.robot_model import load_robot_model
 from terrain_perception.transforms import make_T, rot_z
 
@@ -234,3 +234,25 @@ def test_upcoming_stance_is_where_a_new_plan_starts():
     feet, nxt = ctl.upcoming_stance()
     np.testing.assert_allclose(feet[legs[:done]], pos[:done], atol=0.5 * m.foot_radius_m)
     assert nxt == legs[done]
+
+
+def test_check_footsteps_dry_runs_the_controllers_own_refusals():
+    m = load_robot_model('littledog')
+    T = make_T(np.eye(3), [0.0, 0.0, m.standing_height_m])
+    feet = G.nominal_feet_world(m, T)
+    legs, pos = G.straight_footsteps(m, T, 0.3)
+    assert check_footsteps(m, WalkingConfig(), feet, legs[:4], pos[:4]) == (4, '')
+    wide = pos[:4].copy()
+    wide[0, 1] += 0.08                           # the first foot far out sideways
+    n, why = check_footsteps(m, WalkingConfig(), feet, legs[:4], wide)
+    assert n == 0 and 'reach' in why
+    long = pos[:4].copy()
+    long[1, 0] += 0.3                            # the second step far too long
+    n, why = check_footsteps(m, WalkingConfig(), feet, legs[:4], long)
+    assert n == 1 and 'longer than' in why
+    # the same footsteps executed by a controller: it refuses exactly there
+    ctl = WalkingController(m, WalkingConfig(plan_timeout_s=1e3))
+    ctl.reset(0.0, None, T)
+    ctl.set_footsteps(legs[:4], long, 'walk', 0.0)
+    _run(ctl, 0.0, 30.0)
+    assert ctl.steps_done == 1 and 'longer than' in ctl.last_error
