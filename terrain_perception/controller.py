@@ -522,6 +522,11 @@ class WalkingController:
             self.touchdowns['not_found'] += 1
             self._step_error(f'{"+".join(LEG_NAMES[k] for k in seg.legs)} found no ground '
                              f'within the probe depth below its foothold')
+            if self._pending_swing is not None:
+                # a stance foot carries nothing: lifting another leg now would tip the robot
+                self._pending_swing = None
+                self._queue = []
+                self.last_error += '; step cancelled, standing'
         self._schedule_probes(seg)
 
     # -- touchdown sensing ----------------------------------------------------------------

@@ -508,6 +508,8 @@ class FootstepPlanner:
         """Fig. 4's test for one period from the feet (4, 3) and the body's along-track position
         ``wL`` [m]: trot when every search area is flat (Shao cost < Threshold) and every foot is
         in position (``kL - wL < A/2``), else walk. Returns ``(gait, reason)``."""
+        if not self.robot.trot:
+            return GAIT_WALK, f'{self.robot.name} walks only (robot profile gait.trot)'
         g = self.grid
         ground = float(np.mean(feet[:, 2]))
         fu, _ = self._uv(feet)

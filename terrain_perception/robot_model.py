@@ -84,6 +84,7 @@ class RobotModel:
         T_base_imu: 4x4 ``T_base_link_imu``.
         position_gain, velocity_gain: pybullet POSITION_CONTROL gains.
         foot_friction: lateral friction coefficient of the feet in simulation.
+        trot: whether the planner may choose Shao's trot for this robot (``gait.trot``).
         source_path: YAML file this profile was read from.
     """
 
@@ -124,6 +125,7 @@ class RobotModel:
     velocity_gain: float
     foot_friction: float
     source_path: Path = field(default=Path())
+    trot: bool = True
 
     leg_names = LEG_NAMES
 
@@ -276,7 +278,14 @@ def model_from_dict(data: Mapping, source_path: Path = Path()) -> RobotModel:
         foot_friction=_positive(_require(ctrl, 'foot_friction', 'control.'),
                                 'control.foot_friction'),
         source_path=Path(source_path),
+        trot=_bool(gait.get('trot', True), 'gait.trot'),
     )
+
+
+def _bool(v: Any, key: str) -> bool:
+    if not isinstance(v, bool):
+        raise ValueError(f'robot profile: {key} must be true or false, got {v!r}')
+    return v
 
 
 def available_robots() -> tuple:

@@ -1,5 +1,7 @@
 """Receding-horizon footstep planner and Shao's gait selection (papers 000 and 002)."""
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -8,7 +10,9 @@ from terrain_perception import footsteps as fs
 from terrain_perception.grid import GridMap
 from terrain_perception.robot_model import load_robot_model
 
-ROBOT = load_robot_model('littledog')
+# Gait selection (paper 002 Fig. 4) is exercised on LittleDog's geometry with the trot allowed
+# (its profile forbids it: paper 000's LittleDog crawls; see the last test).
+ROBOT = dataclasses.replace(load_robot_model('littledog'), trot=True)
 RES = 0.01
 
 
@@ -334,3 +338,18 @@ def test_candidate_cells_observed_bounded_or_vouched_for_by_the_feet():
                                            'contact': contact})
     ok = fs.candidate_mask(g, fs.PlannerConfig(max_bound_gap_m=0.02))
     np.testing.assert_array_equal(ok.any(axis=1), [True, True, False, True, False, False])
+
+
+def test_a_profile_without_the_trot_walks_on_flat_ground():
+    robot = load_robot_model('littledog')
+    assert robot.trot is False and load_robot_model('frog').trot is True
+    from terrain_perception.grid import GridMap
+    flat = GridMap(0.01, (-0.75, -0.75), (150, 150),
+                   {'elevation': np.zeros((150, 150), np.float32)})
+    flat['cost'] = features.cost_map(flat['elevation'], 0.01)
+    T = np.eye(4)
+    T[2, 3] = robot.standing_height_m
+    plan = fs.plan_footsteps(flat, robot, T)
+    assert plan.ok and plan.gait == fs.GAIT_WALK and 'walks only' in plan.status_text
+    trotting = fs.plan_footsteps(flat, ROBOT, T)
+    assert trotting.ok and trotting.gait == fs.GAIT_TROT

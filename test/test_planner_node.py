@@ -97,7 +97,9 @@ def test_map_pose_goal_give_the_core_plan_and_a_cost_grid(ros_context, executor)
     flat = _grid(np.zeros((150, 150)))
     plan = h.send_map(grid_to_msg(flat))
     assert plan.status == FootstepPlan.STATUS_OK, plan.status_text
-    assert plan.gait_mode == FootstepPlan.GAIT_TROT and plan.header.frame_id == 'map'
+    # LittleDog's profile allows only the crawl (gait.trot: false)
+    assert plan.gait_mode == FootstepPlan.GAIT_WALK and plan.header.frame_id == 'map'
+    assert 'walks only' in plan.status_text
     assert plan.body_move_per_period == pytest.approx(ROBOT.body_move_per_period_m)
     want = fs.plan_footsteps(flat, ROBOT, _pose_T())
     got = np.array([[f.position.x, f.position.y, f.position.z] for f in plan.footsteps])
