@@ -9,11 +9,12 @@
   its footstep.
 * Walking over ``rocks-6cm`` (LittleDog-like) with ground-truth footsteps: the project's
   footstep planner on the true height map, replanned from the true pose and feet after every
-  executed horizon (blind to perception, to separate control from perception).
+  executed horizon (blind to perception, to separate control from perception); baseline in
+  the same run: the controller without touchdown sensing and IMU levelling (open loop).
 
 JSON keys: rtf_littledog, rtf_frog (native camera resolution, cameras on), foot_err_flat_m,
 foot_err_rocks6_m (mean, LittleDog), speed_flat_mps (LittleDog crawl), speed_flat_trot_mps,
-plus per-case details.
+rocks6_advanced_m, rocks6_open_loop_advanced_m, plus per-case details.
 """
 
 from __future__ import annotations
@@ -74,7 +75,7 @@ def _flat_walk(robot: str, distance_m: float, gait: str = 'walk') -> dict:
             'rtf_walk': res.sim_time_s / wall}
 
 
-def _rocks_walk(course, start_x: float, goal_x: float, seed: int) -> dict:
+def _rocks_walk(course, start_x: float, goal_x: float, seed: int, sensing: bool = True) -> dict:
     from terrain_perception.footsteps import PlannerConfig, FootstepPlanner
     from terrain_perception.sim.session import SimSession, SimSessionConfig
     from terrain_perception.sim.walk import WalkRunner
@@ -84,7 +85,10 @@ def _rocks_walk(course, start_x: float, goal_x: float, seed: int) -> dict:
     try:
         client, robot, world = session.client, session.robot, session.world
         height = world.height_at
-        runner = WalkRunner(client, robot, dt_s=DT, height=height,
+        from terrain_perception.controller import WalkingConfig
+        cfg = WalkingConfig(plan_timeout_s=1e6) if sensing else WalkingConfig(
+            plan_timeout_s=1e6, contact_force_n=0.0, attitude_gain=0.0)
+        runner = WalkRunner(client, robot, cfg, dt_s=DT, height=height,
                             ground_id=(world.floor_id, world.terrain_id))
         # Walk gait only: the controller's trot is Shao's quasi-static one (COG on the
         # diagonal), kept out of this measurement.
@@ -130,6 +134,7 @@ def _rocks_walk(course, start_x: float, goal_x: float, seed: int) -> dict:
         session.close()
     advanced = float(res.T_end[0, 3] - res.T_start[0, 3])
     return {'robot': 'littledog', 'course': 'rocks-6cm', 'seed': seed, 'start_x_m': start_x,
+            'sensing': sensing,
             'goal_x_m': goal_x, 'reached': bool(res.T_end[0, 3] >= goal_x - 0.05),
             'status': status, 'fell': res.fell, 'steps': res.steps_done,
             'advanced_m': advanced, 'sim_s': res.sim_time_s,
@@ -170,6 +175,9 @@ def run(args: argparse.Namespace) -> dict:
         flat.append(_flat_walk('frog', 2.0))
         flat.append(_flat_walk('frog', 2.0, 'trot'))
     rocks = _rocks_walk(course, 0.8 if quick else 0.4, 1.3 if quick else 2.4, seed)
+    # baseline: the same controller without touchdown sensing and levelling (open loop)
+    rocks_blind = _rocks_walk(course, 0.8 if quick else 0.4, 1.3 if quick else 2.4, seed,
+                              sensing=False)
     print('\nWalking (controller at every physics step, ground truth from the simulator)')
     print(f'{"case":<22} {"dist m":>7} {"sim s":>7} {"speed m/s":>10} {"foot err mean":>14} '
           f'{"p95":>7} {"end err":>8} {"fell":>5} {"RTF":>5}')
@@ -178,12 +186,14 @@ def run(args: argparse.Namespace) -> dict:
         print(f'{case:<22} {r["distance_m"]:>7.2f} {r["sim_s"]:>7.1f} '
               f'{r["speed_mps"]:>10.4f} {r["foot_err_mean_m"]:>14.4f} {r["foot_err_p95_m"]:>7.4f}'
               f' {r["end_err_m"]:>8.4f} {str(r["fell"]):>5} {r["rtf_walk"]:>5.2f}')
-    r = rocks
-    print(f'{"littledog rocks-6cm":<22} {r["advanced_m"]:>7.2f} {r["sim_s"]:>7.1f} '
-          f'{r["speed_mps"]:>10.4f} {r["foot_err_mean_m"]:>14.4f} {r["foot_err_p95_m"]:>7.4f} '
-          f'{"-":>8} {str(r["fell"]):>5} {r["rtf_walk"]:>5.2f}')
-    print(f'rocks-6cm: x {r["start_x_m"]} -> {r["goal_x_m"]} m, reached={r["reached"]}, '
-          f'status: {r["status"]}, steps {r["steps"]}, max tilt {r["max_tilt_deg"]:.1f} deg')
+    for name, r in (('littledog rocks-6cm', rocks), ('  open loop (baseline)', rocks_blind)):
+        print(f'{name:<22} {r["advanced_m"]:>7.2f} {r["sim_s"]:>7.1f} '
+              f'{r["speed_mps"]:>10.4f} {r["foot_err_mean_m"]:>14.4f} '
+              f'{r["foot_err_p95_m"]:>7.4f} {"-":>8} {str(r["fell"]):>5} {r["rtf_walk"]:>5.2f}')
+    for what, r in (('touchdown sensing + levelling', rocks), ('open loop', rocks_blind)):
+        print(f'rocks-6cm {what}: x {r["start_x_m"]} -> {r["goal_x_m"]} m, '
+              f'reached={r["reached"]}, status: {r["status"]}, steps {r["steps"]}, max tilt '
+              f'{r["max_tilt_deg"]:.1f} deg')
 
     native = {row['robot']: row for row in rtf_rows if row['scale'] == 1.0}
     out = {
@@ -196,6 +206,9 @@ def run(args: argparse.Namespace) -> dict:
         'rtf_rows': rtf_rows,
         'flat': flat,
         'rocks6': rocks,
+        'rocks6_open_loop': rocks_blind,
+        'rocks6_advanced_m': rocks['advanced_m'],
+        'rocks6_open_loop_advanced_m': rocks_blind['advanced_m'],
         'quick': quick,
     }
     return out
