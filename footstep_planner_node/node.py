@@ -48,7 +48,7 @@ from terrain_perception.grid import GridMap
 from terrain_perception.patches import PatchConfig, PatchSet, find_patches, gravity_in_camera
 from terrain_perception.robot_model import available_robots, load_robot_model
 from terrain_ros.conversions import (cloud_to_xyz, make_header, matrix_to_pose, msg_to_grid,
-                                     pose_to_matrix, stamp_to_sec)
+                                     msg_to_stance, pose_to_matrix, stamp_to_sec)
 from terrain_ros.node import Counters, run_node
 from terrain_ros.params import declare_config
 from terrain_ros.qos import LATCHED_QOS, RELIABLE_QOS, SENSOR_QOS
@@ -239,16 +239,12 @@ class FootstepPlannerNode(Node):
             self.counters.bump('bad_pose', f'/icp/pose refused: {exc}')
 
     def _on_stance(self, msg: Stance) -> None:
-        feet = np.array([[p.x, p.y, p.z] for p in msg.feet], dtype=np.float64)
-        if feet.shape != (4, 3) or not np.all(np.isfinite(feet)):
-            self.counters.bump('bad_stance', '/walking/stance feet are not 4 finite points')
+        try:
+            feet, next_leg = msg_to_stance(msg)
+        except ValueError as exc:
+            self.counters.bump('bad_stance', f'{exc}; ignored')
             return
-        if msg.next_leg not in (0, 1, 2, 3, Stance.LEG_NONE):
-            self.counters.bump('bad_stance', f'/walking/stance next_leg {msg.next_leg} is not '
-                                             f'a leg')
-            return
-        self.stance = (feet, None if msg.next_leg == Stance.LEG_NONE else int(msg.next_leg),
-                       stamp_to_sec(msg.header.stamp))
+        self.stance = (feet, next_leg, stamp_to_sec(msg.header.stamp))
         # standing after a refused step: the next plan is checked against the controller
         self.stance_refused = msg.last_error if msg.pending_steps == 0 else ''
 

@@ -50,7 +50,7 @@ from terrain_perception.features import CostConfig
 from terrain_perception.fill import (BoundsConfig, FillConfig, FillerConfig, RayConfig,
                                      TerrainFiller)
 from terrain_perception.grid import ELEVATION, GridMap
-from terrain_ros.conversions import grid_to_msg, msg_to_grid, pose_to_matrix
+from terrain_ros.conversions import grid_to_msg, msg_to_grid, msg_to_stance, pose_to_matrix
 from terrain_ros.node import Counters, run_node
 from terrain_ros.params import declare_config
 from terrain_ros.qos import LATCHED_QOS
@@ -199,10 +199,10 @@ class TerrainFillNode(Node):
         self._process_if_paired()
 
     def _on_stance(self, msg: Stance) -> None:
-        feet = np.array([[p.x, p.y, p.z] for p in msg.feet], dtype=np.float64)
-        if feet.shape != (4, 3) or not np.all(np.isfinite(feet)):
-            self.counters.bump('bad_stance', '/walking/stance feet are not 4 finite points; '
-                                             'ignored')
+        try:
+            feet, _ = msg_to_stance(msg)
+        except ValueError as exc:
+            self.counters.bump('bad_stance', f'{exc}; ignored')
             return
         self._stance = (feet, msg.header.frame_id)
 

@@ -542,13 +542,14 @@ class WalkingController:
             self._loaded = None
             return
         # base-frame z: the controller keeps the body level, so this is the vertical force
-        fz = kinematics.foot_forces(self.model, q, tau)[:, 2]
+        J = kinematics.jacobian(self.model, q)
+        fz = kinematics.foot_forces(self.model, q, tau, J)[:, 2]
         self.foot_loads = fz
         self._q_meas = q
         above = np.nan_to_num(fz, nan=0.0) > thr
         if dq is not None:
             dq = np.asarray(dq, dtype=float).reshape(4, 3)
-            vz = np.einsum('kj,kj->k', kinematics.jacobian(self.model, q)[:, 2, :], dq)
+            vz = np.einsum('kj,kj->k', J[:, 2, :], dq)
             above &= ~(vz < -self.config.contact_max_descent_m_s)
         self._load_count = np.where(above, self._load_count + 1, 0)
         self._loaded = self._load_count >= self.config.contact_ticks

@@ -66,19 +66,20 @@ def jacobian(model: RobotModel, q: np.ndarray) -> np.ndarray:
     return J
 
 
-def foot_forces(model: RobotModel, q: np.ndarray, tau: np.ndarray) -> np.ndarray:
+def foot_forces(model: RobotModel, q: np.ndarray, tau: np.ndarray,
+                J: np.ndarray = None) -> np.ndarray:
     """Ground reaction force on each foot ``(..., 4, 3)`` in base_link [N] from joint torques.
 
     Static balance of each leg: the motors' torques ``tau`` hold the ground's force ``f`` on
     the foot, ``tau = -J(q)^T f`` (leg weight and dynamics neglected: the legs are light), so
     ``f = -J^-T tau``. This is how a robot without foot sensors feels touchdown. ``tau``
     ``(..., 4, 3)`` or ``(..., 12)`` motor torques [N m]; a singular leg (straight knee) gives
-    NaN for that leg.
+    NaN for that leg. ``J``: :func:`jacobian` at ``q`` if the caller has it already.
     """
     q = _leg_arrays(model, np.asarray(q, dtype=np.float64).reshape(
         np.shape(q)[:-1] + (4, 3) if np.shape(q)[-1] == 12 else np.shape(q)), 'joint angles')
     t = np.asarray(tau, dtype=np.float64).reshape(q.shape)
-    J = jacobian(model, q)
+    J = jacobian(model, q) if J is None else np.asarray(J, dtype=np.float64)
     JT = np.swapaxes(J, -1, -2)
     ok = np.abs(np.linalg.det(JT)) > 1e-9
     JT = np.where(ok[..., None, None], JT, np.eye(3))

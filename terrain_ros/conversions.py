@@ -22,7 +22,7 @@ from nav_msgs.msg import Odometry
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2, PointField
 from std_msgs.msg import Float32MultiArray, Header, MultiArrayDimension
 from stereo_msgs.msg import DisparityImage
-from terrain_msgs.msg import TerrainGrid, TerrainGridInfo
+from terrain_msgs.msg import Stance, TerrainGrid, TerrainGridInfo
 
 from terrain_perception.camera import PinholeCamera, StereoCamera
 from terrain_perception.grid import GridMap
@@ -283,6 +283,17 @@ def msg_to_grid(msg: TerrainGrid) -> GridMap:
 
 # ---------------------------------------------------------------------------------------------
 # poses
+
+
+def msg_to_stance(msg: Stance) -> Tuple[np.ndarray, Optional[int]]:
+    """``(feet (4, 3), next_leg or None)`` of a terrain_msgs/Stance; ValueError naming the
+    problem for feet that are not 4 finite points or a next_leg that is not a leg."""
+    feet = np.array([[p.x, p.y, p.z] for p in msg.feet], dtype=np.float64).reshape(-1, 3)
+    if feet.shape != (4, 3) or not np.all(np.isfinite(feet)):
+        raise ValueError('/walking/stance feet are not 4 finite points')
+    if msg.next_leg not in (0, 1, 2, 3, Stance.LEG_NONE):
+        raise ValueError(f'/walking/stance next_leg {msg.next_leg} is not a leg')
+    return feet, None if msg.next_leg == Stance.LEG_NONE else int(msg.next_leg)
 
 
 def pose_to_matrix(pose: Pose) -> np.ndarray:
