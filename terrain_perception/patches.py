@@ -34,6 +34,7 @@ from typing import Dict, Optional
 
 import cv2
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from terrain_perception.config import param
 
@@ -220,8 +221,16 @@ def smallest_eigenvectors(C: np.ndarray) -> np.ndarray:
     ``C - lambda I``), vectorised; much faster than a batched ``eigh`` on many small matrices.
     """
     C = np.asarray(C, dtype=np.float64)
-    a00, a01, a02 = C[..., 0, 0], C[..., 0, 1], C[..., 0, 2]
-    a11, a12, a22 = C[..., 1, 1], C[..., 1, 2], C[..., 2, 2]
+    v = _smallest_eigenvector_parts(C[..., 0, 0], C[..., 0, 1], C[..., 0, 2], C[..., 1, 1],
+                                    C[..., 1, 2], C[..., 2, 2])
+    return np.stack(v, -1)
+
+
+def _smallest_eigenvector_parts(a00, a01, a02, a11, a12, a22):
+    """:func:`smallest_eigenvectors` on the six distinct entries of the matrices (arrays of one
+    shape); returns the eigenvectors' x, y, z components. Works on separate arrays so that the
+    callers need not build ``(..., 3, 3)`` stacks (small batches are bound by numpy's per-call
+    cost, not by arithmetic)."""
     q = (a00 + a11 + a22) / 3.0
     p1 = a01 * a01 + a02 * a02 + a12 * a12
     b00, b11, b22 = a00 - q, a11 - q, a22 - q
@@ -229,23 +238,23 @@ def smallest_eigenvectors(C: np.ndarray) -> np.ndarray:
     p = np.sqrt(np.maximum(p2 / 6.0, 1e-300))
     det = (b00 * (b11 * b22 - a12 * a12) - a01 * (a01 * b22 - a12 * a02)
            + a02 * (a01 * a12 - b11 * a02))
-    r = np.clip(det / (2.0 * p ** 3), -1.0, 1.0)
-    phi = np.arccos(r) / 3.0
-    lam = q + 2.0 * p * np.cos(phi + 2.0 * np.pi / 3.0)
+    r = np.minimum(np.maximum(det / (2.0 * p ** 3), -1.0), 1.0)
+    lam = q + 2.0 * p * np.cos(np.arccos(r) / 3.0 + 2.0 * np.pi / 3.0)
     d0, d1, d2 = a00 - lam, a11 - lam, a22 - lam
-    # Cross products of the rows (d0 a01 a02), (a01 d1 a12), (a02 a12 d2) of C - lambda I,
-    # written out: np.cross on many 3-vectors is dominated by its axis bookkeeping.
-    c = np.stack([a01 * a12 - a02 * d1, a02 * a01 - d0 * a12, d0 * d1 - a01 * a01,     # r0 x r1
-                  a01 * d2 - a02 * a12, a02 * a02 - d0 * d2, d0 * a12 - a01 * a02,     # r0 x r2
-                  d1 * d2 - a12 * a12, a12 * a02 - a01 * d2, a01 * a12 - d1 * a02],    # r1 x r2
-                 -1).reshape(C.shape[:-2] + (3, 3))
-    nrm = np.einsum('...ij,...ij->...i', c, c)
-    best = np.argmax(nrm, axis=-1)
-    v = np.take_along_axis(c, best[..., None, None].repeat(3, -1), axis=-2)[..., 0, :]
-    vn = np.sqrt(np.take_along_axis(nrm, best[..., None], axis=-1))
-    out = v / np.where(vn > 0, vn, 1.0)
-    out[vn[..., 0] == 0] = np.array([0.0, 0.0, 1.0])  # isotropic: any direction
-    return out
+    # Cross products of the rows (d0 a01 a02), (a01 d1 a12), (a02 a12 d2) of C - lambda I; the
+    # longest one is the best-conditioned eigenvector estimate.
+    c = ((a01 * a12 - a02 * d1, a02 * a01 - d0 * a12, d0 * d1 - a01 * a01),     # r0 x r1
+         (a01 * d2 - a02 * a12, a02 * a02 - d0 * d2, d0 * a12 - a01 * a02),     # r0 x r2
+         (d1 * d2 - a12 * a12, a12 * a02 - a01 * d2, a01 * a12 - d1 * a02))    # r1 x r2
+    n0, n1, n2 = [(x * x + z * z) + y * y for x, y, z in c]    # (the order einsum sums in)
+    use0 = (n0 >= n1) & (n0 >= n2)          # the first longest, as argmax would pick
+    use1 = ~use0 & (n1 >= n2)
+    vn = np.sqrt(np.where(use0, n0, np.where(use1, n1, n2)))
+    iso = vn == 0                           # isotropic: any direction
+    s = np.where(iso, 1.0, vn)
+    v = [np.where(use0, c[0][k], np.where(use1, c[1][k], c[2][k])) / s for k in range(3)]
+    v[2] = np.where(iso, 1.0, v[2])
+    return v
 
 
 class IntegralMoments:
@@ -380,30 +389,16 @@ class ParaboloidFit:
 
 
 def _expmap(w: np.ndarray) -> np.ndarray:
-    """Rodrigues: rotation matrices ``(..., 3, 3)`` of rotation vectors ``(..., 3)``."""
-    th2 = (w * w).sum(-1)
-    small = th2 < 1e-16
-    ths = np.sqrt(np.where(small, 1.0, th2))
-    a = np.where(small, 1.0, np.sin(ths) / ths)
-    b = np.where(small, 0.5, (1.0 - np.cos(ths)) / (ths * ths))
-    # R = I + a [w]x + b [w]x^2, with [w]x^2 = w w^T - |w|^2 I
-    R = (b[..., None, None] * w[..., :, None]) * w[..., None, :]
-    R.reshape(-1, 9)[:, ::4] += (1.0 - b * th2).reshape(-1, 1)
-    aw = a[..., None] * w
-    R[..., 0, 1] -= aw[..., 2]
-    R[..., 1, 0] += aw[..., 2]
-    R[..., 0, 2] += aw[..., 1]
-    R[..., 2, 0] -= aw[..., 1]
-    R[..., 1, 2] -= aw[..., 0]
-    R[..., 2, 1] += aw[..., 0]
-    return R
+    """Rodrigues: rotation matrices ``(N, 3, 3)`` of rotation vectors ``(N, 3)`` (scipy's
+    compiled conversion: a numpy version is ~40 calls, which dominate for small batches)."""
+    return Rotation.from_rotvec(w).as_matrix()
 
 
 def _rot_z(theta: np.ndarray) -> np.ndarray:
     c, s = np.cos(theta), np.sin(theta)
-    z, o = np.zeros_like(c), np.ones_like(c)
-    return np.stack([np.stack([c, -s, z], -1), np.stack([s, c, z], -1),
-                     np.stack([z, z, o], -1)], -2)
+    R = np.zeros((len(theta), 3, 3))
+    R[:, 0, 0], R[:, 0, 1], R[:, 1, 0], R[:, 1, 1], R[:, 2, 2] = c, -s, s, c, 1.0
+    return R
 
 
 def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -412,8 +407,28 @@ def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
                      a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]], -1)
 
 
-def _residuals(q: np.ndarray, kx: np.ndarray, ky: np.ndarray) -> np.ndarray:
-    return 0.5 * (kx[:, None] * q[..., 0] ** 2 + ky[:, None] * q[..., 1] ** 2) - q[..., 2]
+def _to_frames(R: np.ndarray, d: np.ndarray, out: np.ndarray) -> np.ndarray:
+    """``R^T d`` for frames ``R`` ``(P, 3, 3)`` and points ``d`` as x, y, z planes ``(3, P, n)``,
+    written to the planes ``out`` ``(3, P, n)``: one matmul (a BLAS call per patch)."""
+    np.matmul(R.transpose(0, 2, 1), d.transpose(1, 0, 2), out=out.transpose(1, 0, 2))
+    return out
+
+
+def _gram(A: np.ndarray) -> np.ndarray:
+    """``A_p A_p^T`` ``(P, k, k)`` of the rows ``A`` given as planes ``(k, P, n)``."""
+    return np.matmul(A.transpose(1, 0, 2), A.transpose(1, 2, 0))
+
+
+def _residuals(q: np.ndarray, K: np.ndarray, W: np.ndarray, out: np.ndarray) -> np.ndarray:
+    """Masked residuals ``(0.5 (kx x^2 + ky y^2) - (z - h)) W`` of frame coordinates ``q``
+    (planes (3+, P, n)) for the per-patch ``K = (kx, ky, h)`` (3, P), written to ``out``."""
+    sq = q[:2] * q[:2]
+    sq *= K[:2, :, None]
+    np.add(sq[0], sq[1], out=out)
+    out *= 0.5
+    out -= q[2] - K[2, :, None]
+    out *= W
+    return out
 
 
 def fit_paraboloids(points: np.ndarray, mask: np.ndarray, up: np.ndarray,
@@ -433,6 +448,9 @@ def fit_paraboloids(points: np.ndarray, mask: np.ndarray, up: np.ndarray,
     ``0.5 (kx x^2 + ky y^2) - z`` over (kx, ky, rotation, offset h along the normal), the vertex
     constrained to ``centroid + h * normal`` so the patch stays centred on its data.
     """
+    # A frame has ~100 patches of ~50 points, so numpy's per-call cost, not arithmetic, sets the
+    # time. Per-point quantities are therefore kept as contiguous planes (quantity, patch,
+    # point), on which every operation is one flat loop, and products over points are matmuls.
     P = np.asarray(points, dtype=np.float64)
     M = np.asarray(mask, dtype=bool)
     if P.ndim != 3 or P.shape[2] != 3 or M.shape != P.shape[:2]:
@@ -441,14 +459,22 @@ def fit_paraboloids(points: np.ndarray, mask: np.ndarray, up: np.ndarray,
     cnt = M.sum(axis=1)
     if np.any(cnt < 6):
         raise ValueError(f'every neighbourhood needs >= 6 points, the smallest has {cnt.min()}')
-    npatch = P.shape[0]
+    npatch, n = M.shape
     up = np.broadcast_to(np.asarray(up, dtype=np.float64), (npatch, 3))
-    W = M.astype(np.float64)
-    P = np.where(M[..., None], P, 0.0)
-    c = (P * W[..., None]).sum(1) / cnt[:, None]
-    d = (P - c[:, None]) * W[..., None]
-    cov = (d.transpose(0, 2, 1) @ d) / cnt[:, None, None]
-    n0 = smallest_eigenvectors(cov)
+    # D: x, y, z relative to the patch centroid, and the mask W (0/1). Padding points are
+    # zeroed, so they sit at 0 in every frame below and only constant terms need W.
+    D = np.empty((4, npatch, n))
+    D[:3] = P.transpose(2, 0, 1)
+    np.copyto(D[:3], 0.0, where=~M)
+    D[3] = M
+    d, W = D[:3], D[3]
+    c = d.sum(2) / cnt
+    d -= c[:, :, None]
+    d *= W
+    c = c.T
+    cov = _gram(d) / cnt[:, None, None]
+    n0 = np.stack(_smallest_eigenvector_parts(cov[:, 0, 0], cov[:, 0, 1], cov[:, 0, 2],
+                                              cov[:, 1, 1], cov[:, 1, 2], cov[:, 2, 2]), -1)
     n0[np.einsum('pi,pi->p', n0, up) < 0] *= -1.0
     # PCA frame with z = normal
     helper = np.where(np.abs(n0[:, :1]) < 0.9, np.array([1.0, 0, 0]), np.array([0, 1.0, 0]))
@@ -456,14 +482,19 @@ def fit_paraboloids(points: np.ndarray, mask: np.ndarray, up: np.ndarray,
     x0 /= np.linalg.norm(x0, axis=1, keepdims=True)
     y0 = _cross(n0, x0)
     Rp = np.stack([x0, y0, n0], axis=-1)
-    q = d @ Rp
-    qx, qy, qz = q[..., 0], q[..., 1], q[..., 2]
-    A = np.stack([qx * qx, qx * qy, qy * qy, qx, qy, np.ones_like(qx)], -1) * W[..., None]
-    At = A.transpose(0, 2, 1)
-    AtA = At @ A
-    Atb = (At @ (qz * W)[..., None])[..., 0]
-    scale = np.maximum(np.trace(AtA, axis1=1, axis2=2), 1e-12)[:, None, None]
-    sol = np.linalg.solve(AtA + 1e-9 * scale * np.eye(6), Atb[..., None])[..., 0]
+    # Normal equations of the quadric from one Gram matrix of [design rows; right-hand side].
+    A = np.empty((7, npatch, n))
+    qx, qy, qz = _to_frames(Rp, d, A[3:6])                 # x, y, then z (moved below)
+    A[6] = qz
+    np.multiply(qx, qx, out=A[0])
+    np.multiply(qx, qy, out=A[1])
+    np.multiply(qy, qy, out=A[2])
+    A[5] = W
+    G = _gram(A)
+    AtA = G[:, :6, :6].copy()
+    diag = AtA.reshape(-1, 36)[:, ::7]
+    diag += 1e-9 * np.maximum(diag.sum(1), 1e-12)[:, None]
+    sol = np.linalg.solve(AtA, G[:, :6, 6:])[..., 0]
     a, b, cc, dx, dy, f0 = sol.T
     # Tilt the normal to the quadric's normal at the origin, then align x, y with the principal
     # directions of its Hessian.
@@ -476,71 +507,83 @@ def fit_paraboloids(points: np.ndarray, mask: np.ndarray, up: np.ndarray,
     theta = 0.5 * np.arctan2(b, a - cc)  # principal direction of [[2a, b], [b, 2c]]
     R = Rp @ Rt @ _rot_z(theta)
     ct, st = np.cos(theta), np.sin(theta)
-    kx = 2 * a * ct * ct + 2 * b * ct * st + 2 * cc * st * st
-    ky = 2 * a * st * st - 2 * b * ct * st + 2 * cc * ct * ct
-    h = f0 * np.cos(ang)
-
-    def local(d, R, h):
-        q = d @ R
-        q[..., 2] -= h[:, None]
-        return q
+    K = np.stack([2 * a * ct * ct + 2 * b * ct * st + 2 * cc * st * st,      # kx, ky, h
+                  2 * a * st * st - 2 * b * ct * st + 2 * cc * ct * ct,
+                  f0 * np.cos(ang)])
 
     # LM on each patch until its own squared residual stops dropping by more than 0.1 % (or
-    # `iterations`); converged patches leave the batch, so later iterations are cheap.
-    ql = local(d, R, h)
-    r = _residuals(ql, kx, ky) * W
-    cur = (r * r).sum(1)
-    act = np.arange(npatch)
+    # `iterations`); converged patches leave the batch (their state is written back then), so
+    # later iterations are cheap. Q: the points in the patch frame before the offset h
+    # (R^T (p - c)) and their residuals.
+    Q = np.empty((4, npatch, n))
+    _residuals(_to_frames(R, d, Q[:3]), K, W, Q[3])
+    cur = np.einsum('pn,pn->p', Q[3], Q[3])
     lam = np.full(npatch, 1e-3)
-    da, Wa = d, W
+    act = np.arange(npatch)
+    Ra, Ka, Qa, Wa = R, K, Q, W
+    JR = np.empty((7, npatch, n))
     for _ in range(iterations):
-        Ra, kxa, kya, ha, lama, cura = R[act], kx[act], ky[act], h[act], lam[act], cur[act]
-        qx, qy = ql[..., 0], ql[..., 1]
-        qz0 = ql[..., 2] + ha[:, None]                   # q0 = R^T (p - c)
-        gx, gy = kxa[:, None] * qx, kya[:, None] * qy     # g = d r / d q = (gx, gy, -1)
-        J = np.empty(ql.shape[:2] + (6,))
-        J[..., 0] = 0.5 * qx * qx
-        J[..., 1] = 0.5 * qy * qy
-        # d r / d omega = g^T [q0]x = (g x q0)^T
-        J[..., 2] = gy * qz0 + qy
-        J[..., 3] = -qx - gx * qz0
-        J[..., 4] = gx * qy - gy * qx
-        J[..., 5] = 1.0
-        J *= Wa[..., None]
-        Jt = J.transpose(0, 2, 1)
-        H = Jt @ J
-        grad = (Jt @ r[..., None])[..., 0]
-        diag = H.reshape(-1, 36)[:, ::7]                 # view of the diagonals
-        diag *= 1.0 + lama[:, None]                      # LM damping lam * diag(H)
-        diag += 1e-12 * lama[:, None]
-        step = -np.linalg.solve(H, grad[..., None])[..., 0]
-        R_new = Ra @ _expmap(step[:, 2:5])
-        kx_new, ky_new, h_new = kxa + step[:, 0], kya + step[:, 1], ha + step[:, 5]
-        ql_new = local(da, R_new, h_new)
-        r_new = _residuals(ql_new, kx_new, ky_new) * Wa
-        new = (r_new * r_new).sum(1)
-        ok = new < cura
-        R[act[ok]], kx[act[ok]], ky[act[ok]], h[act[ok]] = (R_new[ok], kx_new[ok], ky_new[ok],
-                                                            h_new[ok])
-        cur[act[ok]] = new[ok]
-        lam[act] = np.minimum(np.maximum(np.where(ok, lama * 0.1, lama * 10.0), 1e-9), 1e9)
-        go = ~ok | (cura - new > 1e-3 * cura)            # rejected steps retry with more damping
-        go &= lam[act] < 1e9
-        if not go.any():
-            break
-        ql = np.where(ok[:, None, None], ql_new, ql)[go]
-        r = np.where(ok[:, None], r_new, r)[go]
-        act, da, Wa = act[go], da[go], Wa[go]
-    # Order kx <= ky: swap by a +90 deg turn about the normal (x' = y, y' = -x).
+        na = len(act)
+        qx, qy, qz, r = Qa
+        # Rows: d r / d (kx, ky, omega, h), then r itself, so that one Gram matrix gives the
+        # Gauss-Newton matrix J^T J and the gradient J^T r. With g = d r / d q = (gx, gy, -1),
+        # d r / d omega = (g x q)^T; padding points have q = 0, so only the h row needs W.
+        J = JR[:, :na]
+        np.multiply(Qa[:2], Qa[:2], out=J[:2])
+        J[:2] *= 0.5
+        g = Ka[:2, :, None] * Qa[:2]
+        gz = g * qz
+        np.add(gz[1], qy, out=J[2])
+        np.subtract(-qx, gz[0], out=J[3])
+        np.multiply(g[0], qy, out=J[4])
+        J[4] -= g[1] * qx
+        J[5] = Wa
+        J[6] = r
+        G = _gram(J)
+        H = G[:, :6, :6].copy()
+        diag = H.reshape(-1, 36)[:, ::7]
+        diag *= 1.0 + lam[:, None]                         # LM damping lam * diag(H)
+        diag += 1e-12 * lam[:, None]
+        step = np.linalg.solve(H, G[:, :6, 6:])[..., 0]   # (the step is minus this)
+        E = _expmap(-step[:, 2:5])
+        R_new = Ra @ E
+        K_new = Ka - step[:, [0, 1, 5]].T
+        Q_new = np.empty_like(Qa)
+        _to_frames(E, Qa[:3], Q_new[:3])                   # R_new^T (p - c) = E^T R^T (p - c)
+        _residuals(Q_new, K_new, Wa, Q_new[3])
+        new = np.einsum('pn,pn->p', Q_new[3], Q_new[3])
+        ok = new < cur
+        go = (cur - new > 1e-3 * cur) | ~ok                # rejected steps retry with more damping
+        lam = np.minimum(np.maximum(lam * np.where(ok, 0.1, 10.0), 1e-9), 1e9)
+        go &= lam < 1e9
+        if ok.all():
+            Ra, Ka, Qa, cur = R_new, K_new, Q_new, new
+        else:                                              # keep the old state where rejected
+            Ra = np.where(ok[:, None, None], R_new, Ra)
+            Ka = np.where(ok, K_new, Ka)
+            Qa = np.where(ok[:, None], Q_new, Qa)
+            cur = np.where(ok, new, cur)
+        if not go.all():
+            done = act[~go]
+            R[done], K[:, done], Q[:, done] = Ra[~go], Ka[:, ~go], Qa[:, ~go]
+            if not go.any():
+                break
+            act, Ra, Ka, Qa, Wa, lam, cur = (act[go], Ra[go], Ka[:, go], Qa[:, go], Wa[go],
+                                             lam[go], cur[go])
+    else:
+        R[act], K[:, act], Q[:, act] = Ra, Ka, Qa
+    qx, qy, qz, r = Q
+    kx, ky, h = K
+    gn = np.sqrt((kx[:, None] * qx) ** 2 + (ky[:, None] * qy) ** 2 + 1.0)
+    # Order kx <= ky: swap by a +90 deg turn about the normal (x' = y, y' = -x; the residuals,
+    # gn and the radii below do not change).
     swap = kx > ky
-    R = np.where(swap[:, None, None], R @ _rot_z(np.full(npatch, np.pi / 2)), R)
-    kx, ky = np.where(swap, ky, kx), np.where(swap, kx, ky)
-    ql = local(d, R, h)
-    r = _residuals(ql, kx, ky)
-    gn = np.sqrt((kx[:, None] * ql[..., 0]) ** 2 + (ky[:, None] * ql[..., 1]) ** 2 + 1.0)
-    rms_alg = np.sqrt(((r * W) ** 2).sum(1) / cnt)
-    rms_euc = np.sqrt(((r / gn * W) ** 2).sum(1) / cnt)
-    rad = np.sort(np.where(M, np.hypot(ql[..., 0], ql[..., 1]), np.inf), axis=1)
+    R[swap, :, 0], R[swap, :, 1] = R[swap, :, 1], -R[swap, :, 0]
+    K[0, swap], K[1, swap] = K[1, swap], K[0, swap]
+    rms_alg = np.sqrt(np.einsum('pn,pn->p', r, r) / cnt)
+    r /= gn
+    rms_euc = np.sqrt(np.einsum('pn,pn->p', r, r) / cnt)
+    rad = np.sort(np.where(M, np.sqrt(qx * qx + qy * qy), np.inf), axis=1)
     radius = np.take_along_axis(rad, np.floor(0.95 * (cnt - 1)).astype(np.int64)[:, None],
                                 axis=1)[:, 0]
     vertex = c + h[:, None] * R[:, :, 2]
