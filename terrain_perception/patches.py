@@ -29,6 +29,8 @@ z forward) in metres unless a docstring says otherwise.
 from __future__ import annotations
 
 import dataclasses
+import math
+import threading
 from dataclasses import dataclass
 from typing import Dict, Optional
 
@@ -83,6 +85,40 @@ class PatchConfig:
 # Stage I
 # --------------------------------------------------------------------------------------------
 
+class _Workspace:
+    """Work arrays of one thread, reused from frame to frame.
+
+    A frame's large temporaries (band planes, integral images: ~10 MB) would otherwise be fresh
+    memory every call, and the page faults of first touching it cost ~10 % of the frame's CPU
+    time. Only find_patches uses it, for arrays that never leave the call; results never depend
+    on it."""
+
+    def __init__(self) -> None:
+        self._bufs: Dict[str, np.ndarray] = {}
+
+    def array(self, name: str, shape, dtype=np.float32) -> np.ndarray:
+        dtype = np.dtype(dtype)
+        n = math.prod(shape) * dtype.itemsize
+        buf = self._bufs.get(name)
+        if buf is None or buf.nbytes < n:
+            buf = self._bufs[name] = np.empty(n + n // 4, np.uint8)   # headroom for growth
+        return buf[:n].view(dtype).reshape(shape)
+
+
+_THREAD_LOCAL = threading.local()
+
+
+def _workspace() -> _Workspace:
+    ws = getattr(_THREAD_LOCAL, 'workspace', None)
+    if ws is None:
+        ws = _THREAD_LOCAL.workspace = _Workspace()
+    return ws
+
+
+def _array(ws: Optional[_Workspace], name: str, shape, dtype=np.float32) -> np.ndarray:
+    return ws.array(name, shape, dtype) if ws is not None else np.empty(shape, dtype)
+
+
 def _check_cloud(cloud: np.ndarray) -> np.ndarray:
     cloud = np.asarray(cloud)
     if cloud.ndim != 3 or cloud.shape[2] != 3:
@@ -93,21 +129,23 @@ def _check_cloud(cloud: np.ndarray) -> np.ndarray:
     return np.asarray(cloud, dtype=np.float32)
 
 
-def _bilateral_scale(z: np.ndarray, cfg: PatchConfig) -> np.ndarray:
+def _bilateral_scale(z: np.ndarray, cfg: PatchConfig,
+                     ws: Optional[_Workspace] = None) -> np.ndarray:
     """Step 3 on the depth image ``z`` ``(H, W)`` as a per-pixel factor: filtered depth / raw
     depth (NaN where invalid).
 
     Only the depth image (z) is filtered; multiplying a point by its factor moves it along its
     pixel ray to the new depth. Invalid (NaN or z <= 0) points are set to 0 m before filtering,
     far outside the range sigma, so they do not bleed into valid ones."""
-    with np.errstate(invalid='ignore'):
-        valid = z > 0                      # False for NaN
-    z0 = np.where(valid, z, np.float32(0.0))
+    z0 = _array(ws, 'z0', z.shape)
+    cv2.threshold(z, 0.0, 0.0, cv2.THRESH_TOZERO, dst=z0)   # z if z > 0 else 0 (NaN kept)
+    cv2.patchNaNs(z0, 0.0)
     zf = cv2.bilateralFilter(z0, cfg.bilateral_window_px, cfg.bilateral_sigma_depth_m,
-                             cfg.bilateral_sigma_space_px)
-    with np.errstate(invalid='ignore', divide='ignore'):
-        zf /= z0
-    zf[~valid] = np.nan
+                             cfg.bilateral_sigma_space_px, dst=_array(ws, 'scale', z.shape))
+    invalid = np.less_equal(z0, 0.0, out=_array(ws, 'invalid', z.shape, bool))
+    with np.errstate(invalid='ignore', divide='ignore', over='ignore'):
+        np.divide(zf, z0, out=zf)
+    np.copyto(zf, np.float32(np.nan), where=invalid)
     return zf
 
 
@@ -122,39 +160,69 @@ def bilateral_filter_cloud(cloud: np.ndarray, cfg: PatchConfig) -> np.ndarray:
     return cloud * _bilateral_scale(np.ascontiguousarray(cloud[..., 2]), cfg)[..., None]
 
 
-def _median_2x2_planes(planes) -> np.ndarray:
-    """2x2 block medians of three ``(h, w)`` coordinate planes (h, w even) -> ``(h/2, w/2, 3)``;
-    a point is valid when its z plane entry is finite."""
-    h, w = planes[0].shape
-    out = np.empty((h // 2, w // 2, 3), np.float32)
-    # Median of 4 = mean of the two middle values = (max of the pair minima + min of the pair
-    # maxima) / 2, pairing the rows first: row-strided views are what OpenCV's kernels take.
-    for k, p in enumerate(planes):
-        top, bot = p[0::2], p[1::2]
-        lo, hi = cv2.min(top, bot), cv2.max(top, bot)
-        m = np.maximum(lo[:, 0::2], lo[:, 1::2])
-        m += np.minimum(hi[:, 0::2], hi[:, 1::2])
-        out[..., k] = m
-    out *= np.float32(0.5)
-    # Blocks with an invalid point: median of their valid points (NaN when there are none).
-    z = planes[2]
-    zs = z[0::2] + z[1::2]
-    part = np.isnan(zs[:, 0::2] + zs[:, 1::2])
+def _median_2x2(cloud: np.ndarray, scale: Optional[np.ndarray] = None,
+                ws: Optional[_Workspace] = None):
+    """2x2 block medians of the points ``cloud * scale[..., None]`` (``(h, w, 3)``, h and w
+    even; ``scale=None``: of ``cloud`` itself) as x, y, z planes ``(h/2, w/2)``; a point is
+    valid when its z is finite, a block's median is over its valid points (NaN if none).
+
+    Median of 4 = (max of the pair minima + min of the pair maxima) / 2 for any pairing; pairing
+    the columns lets one ``cv2.split`` of the (h, w/2, 6) view separate even and odd columns of
+    all three coordinates, and every later operation is an OpenCV call on contiguous or
+    row-strided planes."""
+    h, w = cloud.shape[:2]
+    cols = cv2.split(np.ascontiguousarray(cloud).reshape(h, w // 2, 6),
+                     [_array(ws, f'col{k}', (h, w // 2)) for k in range(6)])
+    if scale is not None:
+        s_even, s_odd = cv2.split(scale.reshape(h, w // 2, 2),
+                                  [_array(ws, f'scol{k}', (h, w // 2)) for k in range(2)])
+        for k in range(3):
+            cv2.multiply(cols[k], s_even, dst=cols[k])
+            cv2.multiply(cols[k + 3], s_odd, dst=cols[k + 3])
+    lo = _array(ws, 'lo', (h, w // 2))
+    hi = _array(ws, 'hi', (h, w // 2))
+    out = []
+    for k in range(3):
+        even, odd = cols[k], cols[k + 3]
+        cv2.min(even, odd, dst=lo)
+        cv2.max(even, odd, dst=hi)
+        m = cv2.max(lo[0::2], lo[1::2], dst=_array(ws, f'D{k}', (h // 2, w // 2)))
+        m += cv2.min(hi[0::2], hi[1::2], dst=_array(ws, 'him', (h // 2, w // 2)))
+        m *= np.float32(0.5)
+        out.append(m)
+    # Blocks with an invalid point (NaN z): median of their valid points (NaN when none).
+    zs = cv2.add(cols[2], cols[5], dst=lo)
+    part = np.isnan(cv2.add(zs[0::2], zs[1::2], dst=_array(ws, 'him', (h // 2, w // 2))))
     if np.any(part):
         r, c = np.nonzero(part)
-        rr = (2 * r[:, None] + np.array([0, 0, 1, 1])).ravel()
-        cc = (2 * c[:, None] + np.array([0, 1, 0, 1])).ravel()
-        blk = np.stack([p[rr, cc].reshape(-1, 4) for p in planes], 1)     # (k, 3, 4)
-        bad = ~np.isfinite(blk[:, 2, :])
-        blk[np.broadcast_to(bad[:, None, :], blk.shape)] = np.nan
-        n = 4 - bad.sum(-1)
-        srt = np.sort(blk, axis=-1)                                          # NaN sorts last
-        idx_lo = np.maximum((n - 1) // 2, 0)[:, None, None].repeat(3, 1)
-        idx_hi = (n // 2)[:, None, None].repeat(3, 1)
-        med = 0.5 * (np.take_along_axis(srt, idx_lo, -1) + np.take_along_axis(srt, idx_hi, -1))
-        med = med[..., 0]
-        med[n == 0] = np.nan
-        out[r, c] = med
+        i = 2 * r * (w // 2) + c
+        i = np.stack([i, i + w // 2])                  # top and bottom row of each block
+        # (4, 3, k): the blocks' points (even column top, bottom, odd column top, bottom)
+        v = np.stack([np.concatenate([np.take(cols[k], i), np.take(cols[k + 3], i)])
+                      for k in range(3)], 1)
+        bad = ~np.isfinite(v[:, 2])
+        n = 4 - bad.sum(0)
+        half = np.float32(0.5)
+        regular = (np.isfinite(v) | bad[:, None]).all()   # valid points finite in x, y too
+        np.copyto(v, np.float32(np.inf), where=bad[:, None])   # invalid points sort last
+        if regular:
+            # Sorting network on the four points: s0 <= s1 <= s2 <= s3 per coordinate.
+            a, b = np.minimum(v[0], v[1]), np.maximum(v[0], v[1])
+            c_, d = np.minimum(v[2], v[3]), np.maximum(v[2], v[3])
+            s0, t1 = np.minimum(a, c_), np.maximum(a, c_)
+            t2 = np.minimum(b, d)
+            s1, s2 = np.minimum(t1, t2), np.maximum(t1, t2)
+            med = np.where(n == 1, s0, np.where(n == 2, half * (s0 + s1),
+                                                np.where(n == 3, s1, half * (s1 + s2))))
+        else:   # a valid z with a non-finite x or y: sort, NaN last
+            v[np.broadcast_to(bad[:, None], v.shape)] = np.nan
+            srt = np.sort(v, axis=0)
+            lo = np.take_along_axis(srt, np.maximum((n - 1) // 2, 0)[None, None], 0)[0]
+            hi = np.take_along_axis(srt, (n // 2)[None, None], 0)[0]
+            med = half * (lo + hi)
+        med[:, n == 0] = np.nan
+        for k in range(3):
+            out[k][r, c] = med[k]
     return out
 
 
@@ -163,18 +231,17 @@ def median_downsample_2x2(cloud: np.ndarray) -> np.ndarray:
     block over its valid points (NaN where the block has none)."""
     cloud = _check_cloud(cloud)
     h, w = cloud.shape[0] // 2 * 2, cloud.shape[1] // 2 * 2
-    return _median_2x2_planes([np.ascontiguousarray(cloud[:h, :w, k]) for k in range(3)])
+    return np.stack(_median_2x2(cloud[:h, :w]), -1)
 
 
-def _filter_and_downsample(cloud: np.ndarray, z: np.ndarray, cfg: PatchConfig):
-    """Steps 3-4 without materialising the filtered full-resolution cloud: returns ``D`` and the
-    step-3 factor (filtered cloud = ``cloud * scale[..., None]``, needed only at step 11).
-    ``z``: the cloud's depth plane, contiguous."""
-    scale = _bilateral_scale(z, cfg)
+def _filter_and_downsample(cloud: np.ndarray, z: np.ndarray, cfg: PatchConfig,
+                           ws: Optional[_Workspace] = None):
+    """Steps 3-4 without materialising the filtered full-resolution cloud: returns ``D`` as x,
+    y, z planes and the step-3 factor (filtered cloud = ``cloud * scale[..., None]``, needed
+    only at step 11). ``z``: the cloud's depth plane, contiguous."""
+    scale = _bilateral_scale(z, cfg, ws)
     h, w = cloud.shape[0] // 2 * 2, cloud.shape[1] // 2 * 2
-    s = scale[:h, :w]
-    planes = [np.multiply(cloud[:h, :w, k], s) for k in range(3)]
-    return _median_2x2_planes(planes), scale
+    return _median_2x2(cloud[:h, :w], scale[:h, :w], ws), scale
 
 
 # --------------------------------------------------------------------------------------------
@@ -263,26 +330,45 @@ class IntegralMoments:
 
     def __init__(self, cloud: np.ndarray) -> None:
         cloud = _check_cloud(cloud)
-        valid = np.isfinite(cloud[..., 2])
+        self._build(cloud[..., 0], cloud[..., 1], cloud[..., 2], None)
+
+    @classmethod
+    def _from_planes(cls, x: np.ndarray, y: np.ndarray, z: np.ndarray,
+                     ws: Optional[_Workspace] = None) -> 'IntegralMoments':
+        """The same from x, y, z planes ``(h, w)``, its images in the workspace ``ws``."""
+        self = cls.__new__(cls)
+        self._build(x, y, z, ws)
+        return self
+
+    def _build(self, x, y, z, ws) -> None:
+        valid = np.isfinite(z)
         h, w = valid.shape
         # Centre on the mean point to keep the second moments well conditioned; the centred
         # float32 products lose nothing that matters (relative 1e-7 of ~0.1 m coordinates), and
         # the integrals themselves are summed in float64.
         # Any point near the data will do: the mean of a 1/16 subsample (all points if that has
         # none) saves a gather of every valid point.
-        sub = cloud[::4, ::4][valid[::4, ::4]]
-        sub = sub if len(sub) else cloud[valid]
+        vs = valid[::4, ::4]
+        sub = np.stack([c[::4, ::4][vs] for c in (x, y, z)], -1)
+        sub = sub if len(sub) else np.stack([c[valid] for c in (x, y, z)], -1)
         self.offset = sub.mean(axis=0, dtype=np.float64) if len(sub) else np.zeros(3)
-        x, y, z = [np.where(valid, c - np.float32(o), np.float32(0.0))
-                   for c, o in zip(cv2.split(cloud), self.offset)]
-        p = cv2.merge([x, y, z])
-        cross = cv2.merge([valid.astype(np.float32), x * y, x * z, y * z])
-        # OpenCV's integral is one C pass per image (4 channels max), ~20x numpy's two cumsums;
-        # integral2 gives the sums and the squares in one pass.
-        s1, s2 = cv2.integral2(p, sdepth=cv2.CV_64F, sqdepth=cv2.CV_64F)
-        s3 = cv2.integral(cross, sdepth=cv2.CV_64F)
-        # channels: [n, xy, xz, yz], [x, y, z], [xx, yy, zz]
-        self.ii = [s3, s1, s2]
+        invalid = ~valid
+        xyz = []
+        for k, (c, o) in enumerate(zip((x, y, z), self.offset)):
+            d = np.subtract(c, np.float32(o), out=_array(ws, f'ii_c{k}', (h, w)))
+            np.copyto(d, np.float32(0.0), where=invalid)
+            xyz.append(d)
+        x, y, z = xyz
+        # OpenCV's integral is one C pass per image (up to 4 channels), ~20x numpy's two
+        # cumsums. Squares are exact in float64 (as integral2 would form them, but integral2's
+        # extra output costs more than this second image).
+        S = cv2.merge([valid.astype(np.float32), x, y, z], dst=_array(ws, 'ii_S', (h, w, 4)))
+        B = cv2.merge([x * y, x * z, y * z], dst=_array(ws, 'ii_B', (h, w, 3)))
+        Q = cv2.multiply(S, S, dtype=cv2.CV_64F, dst=_array(ws, 'ii_Q', (h, w, 4), np.float64))
+        # channels: [n, x, y, z], [n, xx, yy, zz], [xy, xz, yz]
+        self.ii = [cv2.integral(a, sdepth=cv2.CV_64F,
+                                sum=_array(ws, f'ii_{k}', (h + 1, w + 1, a.shape[2]), np.float64))
+                   for k, a in enumerate((S, Q, B))]
         self.shape = (h, w)
 
     def window_normals(self, rows: np.ndarray, cols: np.ndarray, half: np.ndarray,
@@ -303,18 +389,29 @@ class IntegralMoments:
             s.append(v[0] + v[1] - v[2] - v[3])
         s = np.concatenate(s, axis=1)
         n = s[:, 0]
-        m = s[:, 1:] / np.maximum(n, 1.0)[:, None]     # xy, xz, yz, x, y, z, xx, yy, zz
-        mx, my, mz = m[:, 3], m[:, 4], m[:, 5]
-        C = np.empty((len(n), 3, 3))
-        C[:, 0, 0] = m[:, 6] - mx * mx
-        C[:, 0, 1] = C[:, 1, 0] = m[:, 0] - mx * my
-        C[:, 0, 2] = C[:, 2, 0] = m[:, 1] - mx * mz
-        C[:, 1, 1] = m[:, 7] - my * my
-        C[:, 1, 2] = C[:, 2, 1] = m[:, 2] - my * mz
-        C[:, 2, 2] = m[:, 8] - mz * mz
-        normals = smallest_eigenvectors(C)
+        m = s / np.maximum(n, 1.0)[:, None]   # n, x, y, z, n, xx, yy, zz, xy, xz, yz
+        mx, my, mz = m[:, 1], m[:, 2], m[:, 3]
+        normals = np.stack(_smallest_eigenvector_parts(
+            m[:, 5] - mx * mx, m[:, 8] - mx * my, m[:, 9] - mx * mz,
+            m[:, 6] - my * my, m[:, 10] - my * mz, m[:, 7] - mz * mz), -1)
         normals[n < min_points] = np.nan
         return normals, n
+
+
+def _integral_normals(pts: np.ndarray, rows: np.ndarray, cols: np.ndarray, focal_px: float,
+                      radius_m: float, moments: IntegralMoments):
+    """:func:`integral_normals` given the points ``pts`` ``(k, 3)`` at ``(rows, cols)``; both
+    scales in one window query."""
+    pts = pts.astype(np.float64)
+    z = pts[:, 2]
+    half_large = np.maximum(np.rint(radius_m * focal_px / z), 1).astype(np.int64)
+    half_small = np.maximum(np.rint(0.5 * radius_m * focal_px / z), 1).astype(np.int64)
+    k = len(rows)
+    nrm, _ = moments.window_normals(np.concatenate([rows, rows]), np.concatenate([cols, cols]),
+                                    np.concatenate([half_large, half_small]))
+    flip = np.einsum('ij,ij->i', nrm, np.concatenate([pts, pts])) > 0
+    nrm[flip] *= -1.0
+    return nrm[:k], nrm[k:]
 
 
 def integral_normals(cloud_ds: np.ndarray, rows: np.ndarray, cols: np.ndarray,
@@ -324,17 +421,7 @@ def integral_normals(cloud_ds: np.ndarray, rows: np.ndarray, cols: np.ndarray,
     oriented towards the camera (``n . p < 0``). Returns ``(N, N_s)``, ``(k, 3)`` each."""
     if moments is None:
         moments = IntegralMoments(cloud_ds)
-    pts = cloud_ds[rows, cols].astype(np.float64)
-    z = pts[:, 2]
-    half_large = np.maximum(np.rint(radius_m * focal_px / z), 1).astype(np.int64)
-    half_small = np.maximum(np.rint(0.5 * radius_m * focal_px / z), 1).astype(np.int64)
-    out = []
-    for half in (half_large, half_small):
-        nrm, _ = moments.window_normals(rows, cols, half)
-        flip = np.einsum('ij,ij->i', nrm, pts) > 0
-        nrm[flip] *= -1.0
-        out.append(nrm)
-    return out[0], out[1]
+    return _integral_normals(cloud_ds[rows, cols], rows, cols, focal_px, radius_m, moments)
 
 
 def saliency(N: np.ndarray, Ns: np.ndarray, gravity_cam: np.ndarray, cfg: PatchConfig):
@@ -728,10 +815,13 @@ def _sample_neighbourhoods(cloud: np.ndarray, scale: np.ndarray, seeds_rc_full: 
     ok = d2 <= r * r                                   # False for NaN
     rank = np.cumsum(ok, axis=1)
     ok &= rank <= nf
-    # Compact the first n_f accepted draws of every row to the front.
-    order = np.argsort(~ok, axis=1, kind='stable')[:, :nf]
-    nb = np.take_along_axis(pts, order[..., None], axis=1)
-    mask = np.take_along_axis(ok, order, axis=1)
+    # The first n_f accepted draws of every row, in draw order, to the front: the j-th accepted
+    # one goes to slot j - 1 (unused slots stay 0 and masked).
+    slot = np.nonzero(ok)[0] * nf + rank[ok] - 1
+    nb = np.zeros((ns, nf, 3))
+    nb.reshape(-1, 3)[slot] = pts[ok]
+    mask = np.zeros((ns, nf), bool)
+    mask.reshape(-1)[slot] = True
     return nb, mask
 
 
@@ -765,8 +855,10 @@ def find_patches(cloud: np.ndarray, fx: float, fy: float, gravity_cam: np.ndarra
     counts: Dict[str, int] = {}
     times: Dict[str, float] = {}
     # Stage I, on the rows that the later steps can read (see _seed_band)
+    ws = _workspace()
     cloud = _check_cloud(cloud)
-    z = np.ascontiguousarray(cloud[:cloud.shape[0] // 2 * 2, :, 2])
+    h_even = cloud.shape[0] // 2 * 2
+    z = cv2.extractChannel(cloud[:h_even], 2, dst=ws.array('z', (h_even, cloud.shape[1])))
     band = _seed_band(z, fix, fx, fy, cfg)
     if band is None:
         counts['valid_points'] = counts['dtfp'] = counts['seeds'] = 0
@@ -774,16 +866,24 @@ def find_patches(cloud: np.ndarray, fx: float, fy: float, gravity_cam: np.ndarra
         return _empty_patches(g, fix, counts, times)
     a, b, cand = band
     cloud = cloud[a:b]
-    D, scale = _filter_and_downsample(cloud, z[a:b], cfg)
+    (Dx, Dy, Dz), scale = _filter_and_downsample(cloud, z[a:b], cfg, ws)
     t1 = clock()
     times['stage1_ms'] = 1e3 * (t1 - t0)
     # Stage II: seeds within R of the fixation point
-    dd = D - fix.astype(np.float32)
+    f32 = fix.astype(np.float32)
+    d2 = np.subtract(Dx, f32[0], out=ws.array('d2', Dz.shape))
+    d2 *= d2
+    for p, f in ((Dy, f32[1]), (Dz, f32[2])):
+        t = np.subtract(p, f, out=ws.array('d2t', Dz.shape))
+        t *= t
+        d2 += t
     with np.errstate(invalid='ignore'):
-        in_roi = np.einsum('ijk,ijk->ij', dd, dd) <= np.float32(cfg.roi_radius_m ** 2)
+        in_roi = np.less_equal(d2, np.float32(cfg.roi_radius_m ** 2),
+                               out=ws.array('in_roi', Dz.shape, bool))
     in_roi &= cand[:, None]
     rows, cols = np.nonzero(in_roi)
-    counts['valid_points'] = int(np.isfinite(D[cand, :, 2]).sum())
+    finite = np.isfinite(Dz, out=ws.array('finite', Dz.shape, bool))
+    counts['valid_points'] = int(np.count_nonzero(finite, axis=1)[cand].sum())
     counts['dtfp'] = int(len(rows))
     # Stage III + step 10. Filtering every candidate and then keeping a uniform random n_s of
     # the survivors has the same outcome distribution as visiting the candidates in uniformly
@@ -796,10 +896,12 @@ def find_patches(cloud: np.ndarray, fx: float, fy: float, gravity_cam: np.ndarra
     don_all = np.empty(n_cand)
     dong_all = np.empty(n_cand)
     if n_cand:
-        half = int(np.ceil(cfg.patch_radius_m * 0.5 * fx / np.nanmin(D[rows, cols, 2]))) + 1
-        r0, r1 = max(rows.min() - half, 0), min(rows.max() + half + 1, D.shape[0])
-        c0, c1 = max(cols.min() - half, 0), min(cols.max() + half + 1, D.shape[1])
-        moments = IntegralMoments(D[r0:r1, c0:c1])
+        # (points in the seed region are valid, so a plain min)
+        half = int(np.ceil(cfg.patch_radius_m * 0.5 * fx / Dz[rows, cols].min())) + 1
+        r0, r1 = max(rows.min() - half, 0), min(rows.max() + half + 1, Dz.shape[0])
+        c0, c1 = max(cols.min() - half, 0), min(cols.max() + half + 1, Dz.shape[1])
+        box = np.s_[r0:r1, c0:c1]
+        moments = IntegralMoments._from_planes(Dx[box], Dy[box], Dz[box], ws)
     while n_eval < n_cand and n_kept < cfg.max_seeds:
         if n_eval == len(order):      # first draw used up: the rest in random order
             rest = np.setdiff1d(np.arange(n_cand), order, assume_unique=True)
@@ -808,8 +910,9 @@ def find_patches(cloud: np.ndarray, fx: float, fy: float, gravity_cam: np.ndarra
         size = int(1.5 * (cfg.max_seeds - n_kept) / rate) + 16
         sel = order[n_eval:n_eval + size]
         n_eval += len(sel)
-        N, Ns = integral_normals(D[r0:r1, c0:c1], rows[sel] - r0, cols[sel] - c0, 0.5 * fx,
-                                 cfg.patch_radius_m, moments)
+        rs, cs = rows[sel], cols[sel]
+        N, Ns = _integral_normals(np.stack([Dx[rs, cs], Dy[rs, cs], Dz[rs, cs]], -1), rs - r0,
+                                  cs - c0, 0.5 * fx, cfg.patch_radius_m, moments)
         don, dong, ok = saliency(N, Ns, g, cfg)
         don_all[sel], dong_all[sel] = don, dong
         n_don += int((don <= np.radians(cfg.max_don_deg)).sum())
@@ -827,7 +930,8 @@ def find_patches(cloud: np.ndarray, fx: float, fy: float, gravity_cam: np.ndarra
     if len(idx) == 0:
         times['stage4_ms'] = 0.0
         return _empty_patches(g, fix, counts, times)
-    seed_pts = D[rows[idx], cols[idx]].astype(np.float64)
+    rs, cs = rows[idx], cols[idx]
+    seed_pts = np.stack([Dx[rs, cs], Dy[rs, cs], Dz[rs, cs]], -1).astype(np.float64)
     # Seed pixel of the downsampled image -> centre of its 2x2 block at full resolution (in the
     # band's rows).
     seeds_full = np.stack([2 * rows[idx] + 0.5, 2 * cols[idx] + 0.5], -1)
