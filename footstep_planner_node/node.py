@@ -69,11 +69,10 @@ class FootstepNodeConfig:
                                    'used for planning [s]', 0.0, 3600.0)
     imu_max_age_s: float = param(0.5, 'largest stamp gap between a cloud and the IMU sample '
                                  'used for its gravity [s]', 0.0, 3600.0)
-    check_after_refusal: bool = param(True, 'after the controller refused a step '
-                                      '(/walking/stance last_error), dry-run the next plan\'s '
-                                      'first step through the controller\'s checks '
-                                      '(WalkingConfig defaults) and start with another leg if '
-                                      'it would be refused again')
+    check_plans: bool = param(True, 'dry-run every walk plan through the walking controller\'s '
+                              'own stability and reach checks (WalkingConfig defaults) and keep '
+                              'the steps it accepts; if it refuses the first, start with '
+                              'another leg (the status says so)')
     use_stance: bool = param(True, 'start plans from the controller\'s /walking/stance (its '
                              'real feet and next leg) instead of the nominal stance')
     stance_max_age_s: float = param(30.0, 'ignore a stance older than this (vs the map '
@@ -167,7 +166,6 @@ class FootstepPlannerNode(Node):
         self.map_problem: Optional[fs.FootstepPlan] = None
         self.T_map_base: Optional[np.ndarray] = None
         self.stance: Optional[tuple] = None     # (feet (4, 3) map, next leg, stamp [s])
-        self.stance_refused = ''                # why the controller refused the last plan
         self.walking_cfg = WalkingConfig()
         self.goal_xy: Optional[np.ndarray] = None
         self.imu: Optional[tuple] = None          # (stamp_s, quaternion xyzw)
@@ -245,8 +243,6 @@ class FootstepPlannerNode(Node):
             self.counters.bump('bad_stance', f'{exc}; ignored')
             return
         self.stance = (feet, next_leg, stamp_to_sec(msg.header.stamp))
-        # standing after a refused step: the next plan is checked against the controller
-        self.stance_refused = msg.last_error if msg.pending_steps == 0 else ''
 
     def _on_goal(self, msg: PoseStamped) -> None:
         p = msg.pose.position
@@ -324,39 +320,17 @@ class FootstepPlannerNode(Node):
             if self.node_cfg.use_stance and self.stance is not None and \
                     abs(self.grid.stamp_s - self.stance[2]) <= self.node_cfg.stance_max_age_s:
                 feet, first_leg = self.stance[0], self.stance[1]
-            plan = self.planner.plan(self.T_map_base, self.goal_xy, feet=feet,
-                                     first_leg=first_leg, patches=patches)
-            if feet is not None and self.stance_refused and self.node_cfg.check_after_refusal:
-                plan = self._checked(plan, feet, first_leg, patches)
+            if feet is not None and self.node_cfg.check_plans:
+                def check(legs, positions):
+                    return check_footsteps(self.robot, self.walking_cfg, feet, legs, positions,
+                                           'walk', self.grid, T_body=self.T_map_base)
+                plan = self.planner.plan_checked(self.T_map_base, self.goal_xy, feet, check,
+                                                 patches=patches, first_leg=first_leg)
+            else:
+                plan = self.planner.plan(self.T_map_base, self.goal_xy, feet=feet,
+                                         first_leg=first_leg, patches=patches)
         self._publish_plan(plan, frame, stamp)
         return plan
-
-    def _checked(self, plan: fs.FootstepPlan, feet, first_leg, patches) -> fs.FootstepPlan:
-        """The controller refused the last plan's step (its stability and reach model is not
-        the planner's): dry-run the first step of this one through the controller's checks
-        and, if refused, start with another leg; give up with an explanatory status."""
-        def first_ok(p):
-            if not p.ok or p.gait != fs.GAIT_WALK or not p.footsteps:
-                return p.ok, ''
-            f = p.footsteps[0]
-            n, why = check_footsteps(self.robot, self.walking_cfg, feet, [f.leg],
-                                     [f.position], 'walk', self.grid)
-            return n == 1, why
-        ok, why = first_ok(plan)
-        if ok:
-            return plan
-        self.counters.bump('first_step_refused_by_check', why)
-        legs = [lg for lg in fs.CRAWL_ORDER if lg != (plan.footsteps[0].leg if plan.ok and
-                                                       plan.footsteps else first_leg)]
-        for leg in legs:
-            alt = self.planner.plan(self.T_map_base, self.goal_xy, feet=feet, first_leg=leg,
-                                    patches=patches)
-            if first_ok(alt)[0]:
-                alt.status_text = (f'{fs.LEG_NAMES[leg]} first: the controller would refuse '
-                                   f'the planned first step ({why}); ' + alt.status_text)
-                return alt
-        return fs.failed(fs.STATUS_NO_FOOTHOLD, f'the controller would refuse the first step '
-                         f'of every plan from this stance ({why})')
 
     def _publish_plan(self, plan: fs.FootstepPlan, frame: str, stamp) -> None:
         self.last_plan = plan

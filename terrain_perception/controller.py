@@ -670,18 +670,18 @@ class WalkingController:
     def _step_error(self, msg: str) -> None:
         self.last_error = msg
 
-    def _com_offset(self, body: np.ndarray, feet: np.ndarray) -> Optional[np.ndarray]:
-        """COM minus body origin, world x-y, for the robot at ``body`` on ``feet``."""
+    def _com_offsets(self, body: np.ndarray, poses: np.ndarray) -> Optional[np.ndarray]:
+        """COM minus body origin, world x-y ``(n, 2)``, for the robot at ``body`` on each foot
+        pose of ``poses`` ``(n, 4, 3)``; None if a foot of any pose is out of reach."""
         T = gaitlib.pose_to_T(body)
-        centres = np.array(feet, dtype=float)
-        centres[:, 2] += self.model.foot_radius_m
+        centres = np.array(poses, dtype=float)
+        centres[..., 2] += self.model.foot_radius_m
         r = kinematics.solve_ik(self.model, kinematics.feet_in_base(T, centres))
         if not r.all_ok:
             self.last_ik_reasons = r.reasons
             return None
-        q = r.q
-        com = transform_points(T, kinematics.com_base(self.model, q))
-        return com[:2] - body[:2]
+        com = transform_points(T, kinematics.com_base(self.model, r.q))
+        return com[:, :2] - body[:2]
 
     def _make_shift(self, step: _Step, t0: float) -> Optional[_Segment]:
         m = self.model
@@ -719,9 +719,8 @@ class WalkingController:
         mean, extra = nominal_off, 0.0
         for _ in range(3):
             body[2] = self._body_z(goal[2], body, poses, legs)
-            offs = [self._com_offset(body, f) for f in poses]
-            if all(o is not None for o in offs):
-                offs = np.array(offs)
+            offs = self._com_offsets(body, poses)
+            if offs is not None:
                 mean = 0.5 * (offs.min(axis=0) + offs.max(axis=0))
                 extra = float(np.linalg.norm(offs - mean, axis=1).max())
             cog, got = gaitlib.project_into_support(goal[:2] + mean, support, margin + extra)
@@ -743,7 +742,7 @@ class WalkingController:
                 self._step_error(f'no body pose keeps every foot in reach while stepping '
                                  f'{names}: ' + '; '.join(self.last_ik_reasons[:2]))
                 return None
-        offs = np.array([self._com_offset(body, f) for f in poses])
+        offs = self._com_offsets(body, poses)
         margins = [gaitlib.support_margin(body[:2] + o, support) for o in offs]
         got = float(min(margins))
         if len(stay) >= 3 and got < self.config.min_margin_fraction * margin:
@@ -785,7 +784,7 @@ class WalkingController:
         the nearest height in +-4 cm at which every pose is reachable."""
         m = self.model
         z_min = float(poses[:, legs, 2].max()) + m.foot_radius_m + \
-            self.config.min_swing_hip_height * m.standing_height_m
+            self.config.min_swing_hip_height * m.standing_height_m if len(legs) else -np.inf
         z = min(max(z_nominal, z_min), self._max_body_z(body, poses))
         cands = z + np.array([0.0] + [s * k * 0.004 for k in range(1, 11) for s in (1, -1)])
         R = rot_z(float(body[3]))
@@ -793,7 +792,7 @@ class WalkingController:
         centres[..., 2] += m.foot_radius_m
         base = np.array([body[0], body[1], 0.0])
         local = (centres[None] - base - cands[:, None, None, None] * np.array([0, 0, 1.0])) @ R
-        ok = kinematics.solve_ik(m, local).ok.all(axis=(1, 2))
+        ok = kinematics.solve_ik(m, local, explain=False).ok.all(axis=(1, 2))
         return float(cands[int(np.argmax(ok))]) if ok.any() else z
 
     def _max_body_z(self, body: np.ndarray, feet_poses: np.ndarray) -> float:
@@ -957,13 +956,16 @@ class WalkingController:
 
 def check_footsteps(model: RobotModel, config: WalkingConfig, feet: np.ndarray,
                     legs: np.ndarray, positions: np.ndarray, gait: str = 'walk',
-                    height: gaitlib.HeightFn = None) -> tuple:
+                    height: gaitlib.HeightFn = None,
+                    T_body: Optional[np.ndarray] = None) -> tuple:
     """Dry run of the controller's own feasibility checks: ``(n, reason)``, how many of the
     footsteps ``legs``/``positions`` it would execute from the stance ``feet`` (4, 3) (all in
     one frame) before refusing one, and why ('' if none is refused).
 
-    The body starts at its nominal pose over ``feet`` (as after a recentring). A planner can
-    call it before publishing, so that its plans and the controller's stability and reach
+    The body starts at ``T_body`` (4x4, its x, y, z and heading), or at its nominal pose over
+    ``feet`` (as after a recentring); if the feet are out of reach from there, at the nearest
+    height within +-4 cm that reaches them (the controller crouches the same way). A planner
+    can call it before publishing, so that its plans and the controller's stability and reach
     model agree (they are different models: the planner's body is a point at the COG).
     """
     feet = np.asarray(feet, dtype=float).reshape(4, 3)
@@ -971,7 +973,14 @@ def check_footsteps(model: RobotModel, config: WalkingConfig, feet: np.ndarray,
     positions = np.asarray(positions, dtype=float).reshape(-1, 3)
     ctl = WalkingController(model, config, height=height)
     body = gaitlib.body_pose_from_feet(feet, model.standing_height_m)
+    if T_body is not None:
+        T_body = np.asarray(T_body, dtype=float)
+        body = np.array([T_body[0, 3], T_body[1, 3], T_body[2, 3],
+                         np.arctan2(T_body[1, 0], T_body[0, 0])])
     q = ctl._ik(gaitlib.pose_to_T(body), feet)
+    if q is None:
+        body[2] = ctl._body_z(body[2], body, feet[None], [])
+        q = ctl._ik(gaitlib.pose_to_T(body), feet)
     if q is None:
         return 0, 'the stance itself is out of reach'
     ctl._feet, ctl._body, ctl._q_last = feet.copy(), body, q.reshape(12)

@@ -37,7 +37,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field, replace
-from typing import List, Optional, Tuple
+from typing import Callable, List, Optional, Tuple
 
 import numpy as np
 
@@ -55,6 +55,7 @@ GAIT_NAMES = {GAIT_STAND: 'stand', GAIT_WALK: 'walk', GAIT_TROT: 'trot'}
 LF, RF, LH, RH = 0, 1, 2, 3
 #: Crawl (walk) order of paper 000 / the issue: LH, LF, RH, RF.
 CRAWL_ORDER = (LH, LF, RH, RF)
+_SAME_SIDE = {LF: LH, LH: LF, RF: RH, RH: RF}
 #: Trot pairs (diagonals), first pair first.
 TROT_PAIRS = ((LF, RH), (RF, LH))
 
@@ -109,6 +110,11 @@ class PlannerConfig:
         0.15, 'largest distance along the walking direction by which a new foothold may lead '
         'the rearmost other foot, both measured from their nominal places [m] (0 = no limit)',
         0.0, 10.0)
+    min_stance_length: float = param(
+        0.65, 'shortest distance along the walking direction between a front foot and the hind '
+        'foot on its side, as a share of the nominal one (the hip spacing): a hind leg that '
+        'catches up with a blocked front leg leaves a support polygon too short to balance on '
+        '(0 = no limit) [-]', 0.0, 1.0)
     nominal_weight_per_m2: float = param(
         20.0, "cost per square metre of distance from the stride rule's foothold (the search "
         'area centre): keeps legs from lagging into dead ends [1/m^2]', 0.0, 1e6)
@@ -386,7 +392,7 @@ def reachable(robot: RobotModel, T_map_base: np.ndarray, feet_map: np.ndarray, l
         targets = np.broadcast_to(np.array(robot.nominal_feet) + [0, 0, robot.foot_radius_m],
                                   (len(idx), 4, 3)).copy()
         targets[np.arange(len(idx)), legs[idx]] = p_base[idx]
-        ok[idx] = solve_ik(robot, targets).ok[np.arange(len(idx)), legs[idx]]
+        ok[idx] = solve_ik(robot, targets, explain=False).ok[np.arange(len(idx)), legs[idx]]
     return ok
 
 
@@ -399,7 +405,7 @@ def stance_in_reach(robot: RobotModel, feet_base: np.ndarray,
     rows = np.nonzero(np.all(ok, axis=1))[0]   # IK only for stances that can pass
     ok[:] = False
     if len(rows):
-        ok[rows] = solve_ik(robot, feet_base[rows]).ok
+        ok[rows] = solve_ik(robot, feet_base[rows], explain=False).ok
     return ok
 
 
@@ -614,6 +620,42 @@ class FootstepPlanner:
         plan.yaw = yaw
         return plan
 
+    def plan_checked(self, T_map_base: np.ndarray, goal_xy: Optional[np.ndarray],
+                     feet: np.ndarray, check: Callable[[np.ndarray, np.ndarray],
+                                                       Tuple[int, str]],
+                     patches: Optional[Tuple[np.ndarray, np.ndarray]] = None,
+                     first_leg: Optional[int] = None) -> FootstepPlan:
+        """:meth:`plan`, then a dry run of the walk through ``check(legs, positions) ->
+        (steps accepted, why not)``, the executor's own stability and reach model (the walking
+        controller's ``check_footsteps``: it balances the whole-robot COM with the legs, this
+        planner a point COG). Only the accepted prefix is kept; if the first step is refused,
+        each other leg is tried first in turn. The status names what was cut and why."""
+        plan = self.plan(T_map_base, goal_xy, feet=feet, patches=patches, first_leg=first_leg)
+        if not plan.ok or plan.gait != GAIT_WALK or not plan.footsteps:
+            return plan
+        first = plan.footsteps[0].leg
+        refusal = ''
+        for leg in [first] + [lg for lg in CRAWL_ORDER if lg != first]:
+            p = plan if leg == first else self.plan(T_map_base, goal_xy, feet=feet,
+                                                    patches=patches, first_leg=leg)
+            if not p.ok or not p.footsteps:
+                continue
+            legs = np.array([f.leg for f in p.footsteps])
+            n, why = check(legs, np.array([f.position for f in p.footsteps]))
+            if n <= 0:
+                refusal = refusal or why
+                continue
+            if n < len(p.footsteps):
+                p.status_text += (f' (kept {n} of {len(p.footsteps)} steps: the controller '
+                                  f'would refuse the next: {why})')
+                p.footsteps = p.footsteps[:n]
+            if leg != first:
+                p.status_text = (f'{LEG_NAMES[leg]} first: the controller would refuse '
+                                 f'{LEG_NAMES[first]} first ({refusal}); ' + p.status_text)
+            return p
+        return failed(STATUS_NO_FOOTHOLD, 'the controller would refuse the first step of every '
+                      f'plan from this stance ({refusal})')
+
     def _recover(self, failed_plan, feet, body_xy, yaw, remaining, first_leg) -> FootstepPlan:
         """A stance with no feasible continuation (a re-estimated map can remove the footholds
         the previous plan counted on, a band of unsafe cells can cross a leg's path): retry
@@ -771,6 +813,16 @@ class FootstepPlanner:
             if not np.any(ok):
                 return None, (f'its search area {cfg.max_leg_spread_m} m or more ahead of the '
                               'rearmost other foot')
+        if cfg.min_stance_length > 0:
+            # Keep the stance long: a hind foot stays behind its side's front foot (and a front
+            # foot ahead of its hind foot) by a share of the nominal spacing.
+            fu, _ = self._uv(state.feet)
+            mate = _SAME_SIDE[leg]
+            gap = cfg.min_stance_length * abs(self.nom_u[mate] - self.nom_u[leg])
+            ok &= (u <= fu[mate] - gap) if leg in (LH, RH) else (u >= fu[mate] + gap)
+            if not np.any(ok):
+                return None, (f'no cell of its search area keeps the stance {gap:.3f} m long '
+                              f'(the {LEG_NAMES[mate]} foot)')
         xy, u, v, ij = xy[ok], u[ok], v[ok], ij[ok]
         z = g[ELEVATION][ij[:, 0], ij[:, 1]].astype(np.float64)
         pts = np.c_[xy, z]

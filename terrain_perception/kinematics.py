@@ -106,11 +106,12 @@ class IKResult:
         return bool(np.all(self.ok))
 
 
-def solve_ik(model: RobotModel, feet_base: np.ndarray) -> IKResult:
+def solve_ik(model: RobotModel, feet_base: np.ndarray, explain: bool = True) -> IKResult:
     """Joint angles placing the foot centres at ``feet_base`` ``(..., 4, 3)`` [m, base_link].
 
     Unreachable targets (too far, too close, inside the abduction offset, or needing a joint
-    outside its limits) get NaN angles and ``ok = False`` with a reason naming the leg.
+    outside its limits) get NaN angles and ``ok = False`` with a reason naming the leg
+    (``explain=False``: no reasons, for searches that only need ``ok``).
     """
     p = _leg_arrays(model, feet_base, 'foot targets')
     l1, l2 = model.thigh_length_m, model.shank_length_m
@@ -144,7 +145,7 @@ def solve_ik(model: RobotModel, feet_base: np.ndarray) -> IKResult:
     q = np.where(ok[..., None], q, np.nan)
 
     reasons = []
-    if not np.all(ok):
+    if explain and not np.all(ok):
         flat_ok = ok.reshape(-1, 4)
         checks = [(~in_plane, 'target inside the abduction offset circle'),
                   (too_far, 'target beyond the leg length'),

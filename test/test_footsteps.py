@@ -353,3 +353,60 @@ def test_a_profile_without_the_trot_walks_on_flat_ground():
     assert plan.ok and plan.gait == fs.GAIT_WALK and 'walks only' in plan.status_text
     trotting = fs.plan_footsteps(flat, ROBOT, T)
     assert trotting.ok and trotting.gait == fs.GAIT_TROT
+
+
+def test_a_lagging_front_foot_keeps_its_hind_foot_a_stance_length_behind():
+    """LF lags 6 cm behind its nominal place (it was blocked): LH's next step may close up on
+    it only to min_stance_length of the nominal front-hind spacing. Without the constraint (0;
+    the leg-spread limit is off in both) LH steps to its stride-rule place, under the front
+    foot: the test can fail."""
+    nom = np.array(ROBOT.nominal_feet)
+    spacing = nom[fs.LF, 0] - nom[fs.LH, 0]
+    gaps = {}
+    for msl in (0.65, 0.0):
+        cfg = fs.PlannerConfig(trot_threshold_m=0.0, horizon_steps=1, min_stance_length=msl,
+                               max_leg_spread_m=0.0, recovery=False)
+        planner = fs.FootstepPlanner(ROBOT, cfg)
+        assert planner.set_map(_flat()) is None
+        feet = nom.copy()
+        feet[:, 2] = 0.0
+        feet[fs.LF, 0] -= 0.06
+        plan = planner.plan(_pose(), np.array([0.6, 0.0]), feet=feet, first_leg=fs.LH)
+        assert plan.ok and plan.footsteps[0].leg == fs.LH, plan.status_text
+        gaps[msl] = feet[fs.LF, 0] - plan.footsteps[0].position[0]
+    assert gaps[0.65] >= 0.65 * spacing - 1e-9
+    assert gaps[0.0] < 0.65 * spacing - 0.02
+
+
+def test_plan_checked_keeps_what_the_executor_accepts():
+    """plan_checked: a check accepting two steps cuts the plan to two (status says so); a check
+    refusing any plan that starts with the planned first leg gets a plan starting with another
+    leg; a check refusing everything gives an explanatory empty plan."""
+    cfg = fs.PlannerConfig(trot_threshold_m=0.0, horizon_steps=4)
+    planner = fs.FootstepPlanner(ROBOT, cfg)
+    assert planner.set_map(_rocks(5)) is None
+    feet = np.array(ROBOT.nominal_feet)
+    feet[:, 2] = planner.grid.sample('elevation', feet[:, :2])
+    goal = np.array([0.6, 0.0])
+    full = planner.plan(_pose(), goal, feet=feet, first_leg=fs.LH)
+    assert full.ok and len(full.footsteps) == 4
+
+    cut = planner.plan_checked(_pose(), goal, feet, lambda legs, pos: (2, 'too far'),
+                               first_leg=fs.LH)
+    assert cut.ok and len(cut.footsteps) == 2 and 'kept 2 of 4' in cut.status_text
+    for a, b in zip(cut.footsteps, full.footsteps):
+        np.testing.assert_allclose(a.position, b.position)
+
+    calls = []
+
+    def not_lh(legs, pos):
+        calls.append(int(legs[0]))
+        return (0, 'LH refused') if legs[0] == fs.LH else (len(legs), '')
+    other = planner.plan_checked(_pose(), goal, feet, not_lh, first_leg=fs.LH)
+    assert other.ok and other.footsteps[0].leg != fs.LH
+    assert 'LH refused' in other.status_text and calls[0] == fs.LH
+
+    none = planner.plan_checked(_pose(), goal, feet, lambda legs, pos: (0, 'nothing fits'),
+                                first_leg=fs.LH)
+    assert not none.ok and none.status == fs.STATUS_NO_FOOTHOLD and not none.footsteps
+    assert 'nothing fits' in none.status_text

@@ -85,7 +85,7 @@ def _rocks_walk(course, start_x: float, goal_x: float, seed: int, sensing: bool 
     try:
         client, robot, world = session.client, session.robot, session.world
         height = world.height_at
-        from terrain_perception.controller import WalkingConfig
+        from terrain_perception.controller import WalkingConfig, check_footsteps
         cfg = WalkingConfig(plan_timeout_s=1e6) if sensing else WalkingConfig(
             plan_timeout_s=1e6, contact_force_n=0.0, attitude_gain=0.0)
         runner = WalkRunner(client, robot, cfg, dt_s=DT, height=height,
@@ -106,7 +106,10 @@ def _rocks_walk(course, start_x: float, goal_x: float, seed: int, sensing: bool 
                 break
             feet = robot.foot_positions_world()
             feet[:, 2] -= m.foot_radius_m
-            plan = planner.plan(T, goal, feet=feet, first_leg=next_leg)
+            # As the planner node does: only the steps the controller's own checks accept.
+            plan = planner.plan_checked(
+                T, goal, feet, lambda legs, pos, feet=feet, T=T: check_footsteps(
+                    m, cfg, feet, legs, pos, 'walk', height, T_body=T), first_leg=next_leg)
             if not plan.ok:
                 status = f'planner: {plan.status_text}'
                 break
