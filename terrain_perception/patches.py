@@ -546,14 +546,21 @@ def fit_paraboloids(points: np.ndarray, mask: np.ndarray, up: np.ndarray,
     cnt = M.sum(axis=1)
     if np.any(cnt < 6):
         raise ValueError(f'every neighbourhood needs >= 6 points, the smallest has {cnt.min()}')
+    D = np.empty((4,) + M.shape)
+    D[:3] = P.transpose(2, 0, 1)
+    np.copyto(D[:3], 0.0, where=~M)
+    D[3] = M
+    return _fit_paraboloids(D, M, cnt, up, iterations)
+
+
+def _fit_paraboloids(D: np.ndarray, M: np.ndarray, cnt: np.ndarray, up: np.ndarray,
+                     iterations: int) -> ParaboloidFit:
+    """:func:`fit_paraboloids` on the planes ``D`` ``(4, P, n)``: x, y, z with padding points
+    zeroed, and the mask as 0/1 (overwritten); ``cnt``: points per patch."""
     npatch, n = M.shape
     up = np.broadcast_to(np.asarray(up, dtype=np.float64), (npatch, 3))
     # D: x, y, z relative to the patch centroid, and the mask W (0/1). Padding points are
     # zeroed, so they sit at 0 in every frame below and only constant terms need W.
-    D = np.empty((4, npatch, n))
-    D[:3] = P.transpose(2, 0, 1)
-    np.copyto(D[:3], 0.0, where=~M)
-    D[3] = M
     d, W = D[:3], D[3]
     c = d.sum(2) / cnt
     d -= c[:, :, None]
@@ -795,7 +802,8 @@ def _sample_neighbourhoods(cloud: np.ndarray, scale: np.ndarray, seeds_rc_full: 
                            rng: np.random.Generator):
     """Step 11: organized search in the filtered cloud ``cloud * scale[..., None]``. For each
     seed draw random pixels in the image window that bounds its r-ball, keep those whose points
-    lie within r, at most n_f of them."""
+    lie within r, at most n_f of them. Returns the neighbourhoods as x, y, z planes
+    ``(3, n_s, n_f)`` (in draw order, unused slots 0) and their mask ``(n_s, n_f)``."""
     h, w = cloud.shape[:2]
     ns, nf = len(seed_pts), cfg.max_neighbours
     k = nf * cfg.neighbour_draws
@@ -808,20 +816,29 @@ def _sample_neighbourhoods(cloud: np.ndarray, scale: np.ndarray, seeds_rc_full: 
     rr = np.clip(np.rint(seeds_rc_full[:, :1] + dv), 0, h - 1).astype(np.int64)
     cc = np.clip(np.rint(seeds_rc_full[:, 1:] + du), 0, w - 1).astype(np.int64)
     flat = rr * w + cc
-    pts = np.take(cloud.reshape(-1, 3), flat, axis=0).astype(np.float64)
-    pts *= np.take(scale.reshape(-1), flat)[..., None]
-    dd = pts - seed_pts[:, None]
-    d2 = np.einsum('ijk,ijk->ij', dd, dd)
+    s = np.take(scale.reshape(-1), flat).astype(np.float64)
+    flat *= 3
+    # The drawn points (float64, as x, y, z planes) and their squared distances to the seeds.
+    pts = []
+    d2 = np.zeros((ns, k))
+    for c in (0, 2, 1):                         # (the order einsum sums x^2 + y^2 + z^2 in)
+        p = np.take(cloud.reshape(-1), flat + c if c else flat) * s
+        d = p - seed_pts[:, c, None]
+        d *= d
+        d2 += d
+        pts.append(p)
+    pts[1], pts[2] = pts[2], pts[1]
     ok = d2 <= r * r                                   # False for NaN
+    # The first n_f accepted draws of every row, in draw order: slot j holds the draw where the
+    # running count of accepted draws reaches j + 1 (one searchsorted over all rows, offset so
+    # that they stay sorted); slots beyond a row's count are masked and zeroed.
     rank = np.cumsum(ok, axis=1)
-    ok &= rank <= nf
-    # The first n_f accepted draws of every row, in draw order, to the front: the j-th accepted
-    # one goes to slot j - 1 (unused slots stay 0 and masked).
-    slot = np.nonzero(ok)[0] * nf + rank[ok] - 1
-    nb = np.zeros((ns, nf, 3))
-    nb.reshape(-1, 3)[slot] = pts[ok]
-    mask = np.zeros((ns, nf), bool)
-    mask.reshape(-1)[slot] = True
+    base = np.arange(ns)[:, None] * (k + 1)
+    j = np.searchsorted((rank + base).reshape(-1), (base + np.arange(1, nf + 1)).reshape(-1))
+    np.minimum(j, ns * k - 1, out=j)
+    mask = np.arange(nf) < rank[:, -1:]
+    nb = np.stack([np.take(p, j).reshape(ns, nf) for p in pts])
+    np.copyto(nb, 0.0, where=~mask)
     return nb, mask
 
 
@@ -881,25 +898,27 @@ def find_patches(cloud: np.ndarray, fx: float, fy: float, gravity_cam: np.ndarra
         in_roi = np.less_equal(d2, np.float32(cfg.roi_radius_m ** 2),
                                out=ws.array('in_roi', Dz.shape, bool))
     in_roi &= cand[:, None]
-    rows, cols = np.nonzero(in_roi)
+    # The seed candidates as flat indices; rows and columns only where needed.
+    flat = np.flatnonzero(in_roi)
+    w2 = Dz.shape[1]
     finite = np.isfinite(Dz, out=ws.array('finite', Dz.shape, bool))
     counts['valid_points'] = int(np.count_nonzero(finite, axis=1)[cand].sum())
-    counts['dtfp'] = int(len(rows))
+    counts['dtfp'] = int(len(flat))
     # Stage III + step 10. Filtering every candidate and then keeping a uniform random n_s of
     # the survivors has the same outcome distribution as visiting the candidates in uniformly
     # random order and keeping the first n_s survivors; the latter evaluates the normals of only
     # about n_s / (survival rate) candidates instead of all of them. Chunks are sized from the
     # survival rate so far.
-    n_cand = len(rows)
+    n_cand = len(flat)
     order = rng.choice(n_cand, min(n_cand, int(1.5 * cfg.max_seeds) + 16), replace=False)
     kept, n_kept, n_eval, n_don, n_dong = [], 0, 0, 0, 0
-    don_all = np.empty(n_cand)
-    dong_all = np.empty(n_cand)
     if n_cand:
         # (points in the seed region are valid, so a plain min)
-        half = int(np.ceil(cfg.patch_radius_m * 0.5 * fx / Dz[rows, cols].min())) + 1
-        r0, r1 = max(rows.min() - half, 0), min(rows.max() + half + 1, Dz.shape[0])
-        c0, c1 = max(cols.min() - half, 0), min(cols.max() + half + 1, Dz.shape[1])
+        half = int(np.ceil(cfg.patch_radius_m * 0.5 * fx
+                           / np.min(Dz, where=in_roi, initial=np.inf))) + 1
+        rows_in, cols_in = np.flatnonzero(in_roi.any(1)), np.flatnonzero(in_roi.any(0))
+        r0, r1 = max(rows_in[0] - half, 0), min(rows_in[-1] + half + 1, Dz.shape[0])
+        c0, c1 = max(cols_in[0] - half, 0), min(cols_in[-1] + half + 1, w2)
         box = np.s_[r0:r1, c0:c1]
         moments = IntegralMoments._from_planes(Dx[box], Dy[box], Dz[box], ws)
     while n_eval < n_cand and n_kept < cfg.max_seeds:
@@ -908,18 +927,21 @@ def find_patches(cloud: np.ndarray, fx: float, fy: float, gravity_cam: np.ndarra
             order = np.concatenate([order, rng.permutation(rest)])
         rate = max(n_dong / n_eval, 0.05) if n_eval else 1.0
         size = int(1.5 * (cfg.max_seeds - n_kept) / rate) + 16
-        sel = order[n_eval:n_eval + size]
+        sel = flat[order[n_eval:n_eval + size]]
         n_eval += len(sel)
-        rs, cs = rows[sel], cols[sel]
+        rs, cs = np.divmod(sel, w2)
         N, Ns = _integral_normals(np.stack([Dx[rs, cs], Dy[rs, cs], Dz[rs, cs]], -1), rs - r0,
                                   cs - c0, 0.5 * fx, cfg.patch_radius_m, moments)
         don, dong, ok = saliency(N, Ns, g, cfg)
-        don_all[sel], dong_all[sel] = don, dong
-        n_don += int((don <= np.radians(cfg.max_don_deg)).sum())
-        n_dong += int(ok.sum())
-        n_kept += int(ok.sum())
-        kept.append(sel[ok])
-    idx = np.concatenate(kept)[:cfg.max_seeds] if kept else np.zeros(0, np.int64)
+        n_don += int(np.count_nonzero(don <= np.radians(cfg.max_don_deg)))
+        n_ok = int(np.count_nonzero(ok))
+        n_dong += n_ok
+        n_kept += n_ok
+        kept.append((sel[ok], don[ok], dong[ok]))
+    if kept:
+        idx, seed_don, seed_dong = [np.concatenate(k)[:cfg.max_seeds] for k in zip(*kept)]
+    else:
+        idx = np.zeros(0, np.int64)
     counts['normals_evaluated'] = int(n_eval)
     counts['don'] = n_don
     counts['dong'] = n_dong
@@ -930,25 +952,29 @@ def find_patches(cloud: np.ndarray, fx: float, fy: float, gravity_cam: np.ndarra
     if len(idx) == 0:
         times['stage4_ms'] = 0.0
         return _empty_patches(g, fix, counts, times)
-    rs, cs = rows[idx], cols[idx]
+    rs, cs = np.divmod(idx, w2)
     seed_pts = np.stack([Dx[rs, cs], Dy[rs, cs], Dz[rs, cs]], -1).astype(np.float64)
     # Seed pixel of the downsampled image -> centre of its 2x2 block at full resolution (in the
     # band's rows).
-    seeds_full = np.stack([2 * rows[idx] + 0.5, 2 * cols[idx] + 0.5], -1)
+    seeds_full = np.stack([2 * rs + 0.5, 2 * cs + 0.5], -1)
     nb, mask = _sample_neighbourhoods(cloud, scale, seeds_full, seed_pts, fx, fy, cfg, rng)
-    enough = mask.sum(1) >= cfg.min_neighbours
+    n_nb = mask.sum(1)
+    enough = n_nb >= cfg.min_neighbours
     counts['neighbourhoods'] = int(enough.sum())
+    seed_don, seed_dong = seed_don[enough], seed_dong[enough]
     sel = idx[enough]
     if len(sel) == 0:
         times['stage4_ms'] = 1e3 * (clock() - t2)
         return _empty_patches(g, fix, counts, times)
-    fit = fit_paraboloids(nb[enough], mask[enough], -g, cfg.lm_iterations)
+    D = np.empty((4, len(sel), cfg.max_neighbours))
+    D[:3] = nb[:, enough]
+    D[3] = mask[enough]
+    fit = _fit_paraboloids(D, mask[enough], n_nb[enough], -g, cfg.lm_iterations)
     curv_ok, res_ok = patch_filters(fit.kx, fit.ky, fit.rms_euclidean, cfg)
     keep = curv_ok & res_ok
     counts['curvature'] = int(curv_ok.sum())
     counts['patches'] = int(keep.sum())
-    k = sel[keep]
-    don, dong = don_all[k], dong_all[k]
+    don, dong = seed_don[keep], seed_dong[keep]
     times['stage4_ms'] = 1e3 * (clock() - t2)
     return PatchSet(fit.vertex[keep], fit.R[keep], fit.kx[keep], fit.ky[keep],
                     fit.radius[keep], fit.rms_euclidean[keep], don, dong,
