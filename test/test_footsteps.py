@@ -363,7 +363,7 @@ def test_a_lagging_front_foot_keeps_its_hind_foot_a_stance_length_behind():
     nom = np.array(ROBOT.nominal_feet)
     spacing = nom[fs.LF, 0] - nom[fs.LH, 0]
     gaps = {}
-    for msl in (0.65, 0.0):
+    for msl in (0.65, 0.0):   # the default is 0 (off): see config/footstep_planner.yaml
         cfg = fs.PlannerConfig(trot_threshold_m=0.0, horizon_steps=1, min_stance_length=msl,
                                max_leg_spread_m=0.0, recovery=False)
         planner = fs.FootstepPlanner(ROBOT, cfg)
