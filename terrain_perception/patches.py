@@ -266,7 +266,8 @@ def gravity_in_camera(q_world_imu: np.ndarray, R_imu_camera: np.ndarray) -> np.n
 def fixation_point(gravity_cam: np.ndarray, cfg: PatchConfig) -> np.ndarray:
     """Step 5: ``f = l_d g + l_f ([1 0 0]^T x g)`` in the camera frame [m]."""
     g = _unit_gravity(gravity_cam)
-    return cfg.fixation_down_m * g + cfg.fixation_forward_m * np.cross([1.0, 0.0, 0.0], g)
+    # [1 0 0]^T x g = (0, -g_z, g_y), written out (np.cross costs ~60 us)
+    return cfg.fixation_down_m * g + cfg.fixation_forward_m * np.array([0.0, -g[2], g[1]])
 
 
 def _unit_gravity(gravity_cam: np.ndarray) -> np.ndarray:
@@ -434,9 +435,10 @@ def saliency(N: np.ndarray, Ns: np.ndarray, gravity_cam: np.ndarray, cfg: PatchC
     cdon = np.einsum('ij,ij->i', N, Ns)
     cdong = -N @ g
     with np.errstate(invalid='ignore'):
-        keep = ((cdon >= np.cos(np.radians(cfg.max_don_deg)))
-                & (cdong >= np.cos(np.radians(cfg.max_dong_deg))))
-    return np.arccos(np.clip(cdon, -1, 1)), np.arccos(np.clip(cdong, -1, 1)), keep
+        keep = ((cdon >= math.cos(math.radians(cfg.max_don_deg)))
+                & (cdong >= math.cos(math.radians(cfg.max_dong_deg))))
+    return (np.arccos(np.minimum(np.maximum(cdon, -1.0), 1.0)),
+            np.arccos(np.minimum(np.maximum(cdong, -1.0), 1.0)), keep)
 
 
 def patch_filters(kx: np.ndarray, ky: np.ndarray, residual: np.ndarray, cfg: PatchConfig):
