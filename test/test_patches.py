@@ -269,18 +269,31 @@ def test_integral_normals_and_saliency_on_a_hand_made_scene():
     assert np.degrees(don[2]) > cfg.max_don_deg                        # edge fails DoN
 
 
-def test_find_patches_on_flat_ground_with_a_ramp():
-    rng = np.random.default_rng(7)
+def _ramp_scene(noise_seed=7, random_seed=0):
+    """Flat ground with a 60 deg ramp (foot at x = 1.0, crest at x = 1.15, for y > 0.2) where
+    the fixation area is, seen from 1 m at 45 deg: (camera, T_world_cam, cloud, gravity, cfg)."""
+    rng = np.random.default_rng(noise_seed)
     cam = PinholeCamera(640, 480, 525.0, 525.0, 319.5, 239.5)
     T = _camera_pose(1.0, 45.0)
 
-    def height(x, y):   # a 60 deg ramp where the fixation area is, flat elsewhere
+    def height(x, y):
         return np.where(y > 0.2, np.tan(np.radians(60)) * np.clip(x - 1.0, 0, 0.15), 0.0)
 
     cloud = _plane_cloud(cam, T, height)
     cloud += rng.normal(0, 0.001, cloud.shape).astype(np.float32) * cloud[..., 2:3]
     g = T[:3, :3].T @ np.array([0, 0, -1.0])
-    cfg = PatchConfig()
+    return cam, T, cloud, g, PatchConfig(random_seed=random_seed)
+
+
+def _near_ramp_edges(world_xy, margin):
+    """Points within ``margin`` [m] (horizontally) of the ramp's foot, crest or side edge."""
+    x, y = world_xy[:, 0], world_xy[:, 1]
+    return (((y > 0.2 - margin) & ((np.abs(x - 1.0) < margin) | (np.abs(x - 1.15) < margin)))
+            | ((np.abs(y - 0.2) < margin) & (x > 1.0 - margin)))
+
+
+def test_find_patches_on_flat_ground_with_a_ramp():
+    cam, T, cloud, g, cfg = _ramp_scene()
     p = find_patches(cloud, cam.fx, cam.fy, g, cfg)
     assert len(p) >= 80 and p.counts['seeds'] == cfg.max_seeds
     world_v = p.vertex @ T[:3, :3].T + T[:3, 3]
@@ -288,12 +301,19 @@ def test_find_patches_on_flat_ground_with_a_ramp():
     # Patches lie on the floor or the ramp's plateau with their normals up, and all within R
     # (+ r) of the fixation point. None on the 60 deg face (DoNG); a few may sit in the concave
     # corner at its foot, which the paper's human-scale thresholds accept.
+    # Next to the ramp's edges (foot, crest, side) a seed passes DoNG, but its paraboloid, fitted
+    # over both sides of the edge, can tilt further and sit between floor and plateau (up to
+    # ~50 deg, all within 2.5 cm of an edge over 48 random seeds). The checks below leave out
+    # r/2 around the edges: the middle third of the 60 deg face stays in, so patches let
+    # through by a broken DoNG filter would still fail them.
+    near_edge = _near_ramp_edges(world_v, 0.5 * cfg.patch_radius_m)
     top = np.tan(np.radians(60)) * 0.15
     flat = (np.abs(world_v[:, 2]) < 0.005) | (np.abs(world_v[:, 2] - top) < 0.005)
     assert flat.mean() > 0.9
-    assert not np.any((world_v[:, 2] > 0.03) & (world_v[:, 2] < top - 0.03))
+    assert not np.any((world_v[:, 2] > 0.03) & (world_v[:, 2] < top - 0.03) & ~near_edge)
     ang = np.degrees(np.arccos(np.clip(world_n[:, 2], -1, 1)))
-    assert np.percentile(ang[flat], 90) < 2.0 and ang.max() <= cfg.max_dong_deg + 5.0
+    assert np.percentile(ang[flat], 90) < 2.0
+    assert ang[~near_edge].max() <= cfg.max_dong_deg + 5.0
     assert np.all(np.linalg.norm(p.vertex - p.fixation, axis=1) < cfg.roi_radius_m
                   + cfg.patch_radius_m)
     np.testing.assert_allclose(p.fixation_distance, np.linalg.norm(p.vertex - p.fixation,
@@ -305,7 +325,7 @@ def test_find_patches_on_flat_ground_with_a_ramp():
     fix_w = T[:3, :3] @ p.fixation + T[:3, 3]
     assert np.hypot(*(fix_w[:2] - [1.07, 0.5])) < cfg.roi_radius_m
     assert not np.any((world_v[:, 1] > 0.2 + cfg.patch_radius_m)
-                      & (world_v[:, 0] > 1.0 + 0.02) & (world_v[:, 0] < 1.15 - 0.02))
+                      & (world_v[:, 0] > 1.0) & (world_v[:, 0] < 1.15) & ~near_edge)
     # Same seed, same patches; map-frame transform keeps geometry.
     again = find_patches(cloud, cam.fx, cam.fy, g, cfg)
     np.testing.assert_array_equal(again.vertex, p.vertex)
@@ -314,7 +334,8 @@ def test_find_patches_on_flat_ground_with_a_ramp():
     np.testing.assert_allclose(pm.gravity, [0, 0, -1], atol=1e-12)
     rim = pm.boundary(8)
     assert rim.shape == (len(p), 8, 3)
-    level = flat & (ang < 2.0)
+    # (level patches whose neighbourhood, radius r, does not reach an edge of the ramp)
+    level = flat & (ang < 2.0) & ~_near_ramp_edges(world_v, cfg.patch_radius_m)
     assert np.all(np.abs(rim[level, :, 2] - pm.vertex[level, None, 2]) < 0.01)
     np.testing.assert_allclose(np.linalg.norm(rim[level, :, :2] - pm.vertex[level, None, :2],
                                               axis=-1),
