@@ -86,12 +86,14 @@ class PatchConfig:
 # --------------------------------------------------------------------------------------------
 
 class _Workspace:
-    """Work arrays of one thread, reused from frame to frame.
+    """Work arrays of one thread, reused from frame to frame (scratch memory only: results
+    never depend on it, and no array of it leaves the call that filled it).
 
-    A frame's large temporaries (band planes, integral images: ~10 MB) would otherwise be fresh
-    memory every call, and the page faults of first touching it cost ~10 % of the frame's CPU
-    time. Only find_patches uses it, for arrays that never leave the call; results never depend
-    on it."""
+    A 640x480 frame's large temporaries (band planes, integral images: ~10 MB) are otherwise
+    fresh allocations every call; when the allocator hands that memory back to the OS between
+    frames (a process doing little else), first touching it again costs ~1000 page faults,
+    ~2 ms CPU per frame. Where the process keeps a large heap anyway (the benchmark's ray
+    casting) it makes no measurable difference."""
 
     def __init__(self) -> None:
         self._bufs: Dict[str, np.ndarray] = {}
@@ -217,9 +219,9 @@ def _median_2x2(cloud: np.ndarray, scale: Optional[np.ndarray] = None,
         else:   # a valid z with a non-finite x or y: sort, NaN last
             v[np.broadcast_to(bad[:, None], v.shape)] = np.nan
             srt = np.sort(v, axis=0)
-            lo = np.take_along_axis(srt, np.maximum((n - 1) // 2, 0)[None, None], 0)[0]
-            hi = np.take_along_axis(srt, (n // 2)[None, None], 0)[0]
-            med = half * (lo + hi)
+            m_lo = np.take_along_axis(srt, np.maximum((n - 1) // 2, 0)[None, None], 0)[0]
+            m_hi = np.take_along_axis(srt, (n // 2)[None, None], 0)[0]
+            med = half * (m_lo + m_hi)
         med[:, n == 0] = np.nan
         for k in range(3):
             out[k][r, c] = med[k]
@@ -360,9 +362,9 @@ class IntegralMoments:
             np.copyto(d, np.float32(0.0), where=invalid)
             xyz.append(d)
         x, y, z = xyz
-        # OpenCV's integral is one C pass per image (up to 4 channels), ~20x numpy's two
-        # cumsums. Squares are exact in float64 (as integral2 would form them, but integral2's
-        # extra output costs more than this second image).
+        # OpenCV's integral is one C pass per image, ~20x numpy's two cumsums. The squares are
+        # exact in float64, as integral2 would form them, but integral2's second output costs
+        # more than this second image.
         S = cv2.merge([valid.astype(np.float32), x, y, z], dst=_array(ws, 'ii_S', (h, w, 4)))
         B = cv2.merge([x * y, x * z, y * z], dst=_array(ws, 'ii_B', (h, w, 3)))
         Q = cv2.multiply(S, S, dtype=cv2.CV_64F, dst=_array(ws, 'ii_Q', (h, w, 4), np.float64))
@@ -537,9 +539,6 @@ def fit_paraboloids(points: np.ndarray, mask: np.ndarray, up: np.ndarray,
     ``0.5 (kx x^2 + ky y^2) - z`` over (kx, ky, rotation, offset h along the normal), the vertex
     constrained to ``centroid + h * normal`` so the patch stays centred on its data.
     """
-    # A frame has ~100 patches of ~50 points, so numpy's per-call cost, not arithmetic, sets the
-    # time. Per-point quantities are therefore kept as contiguous planes (quantity, patch,
-    # point), on which every operation is one flat loop, and products over points are matmuls.
     P = np.asarray(points, dtype=np.float64)
     M = np.asarray(mask, dtype=bool)
     if P.ndim != 3 or P.shape[2] != 3 or M.shape != P.shape[:2]:
@@ -558,7 +557,11 @@ def fit_paraboloids(points: np.ndarray, mask: np.ndarray, up: np.ndarray,
 def _fit_paraboloids(D: np.ndarray, M: np.ndarray, cnt: np.ndarray, up: np.ndarray,
                      iterations: int) -> ParaboloidFit:
     """:func:`fit_paraboloids` on the planes ``D`` ``(4, P, n)``: x, y, z with padding points
-    zeroed, and the mask as 0/1 (overwritten); ``cnt``: points per patch."""
+    zeroed, and the mask as 0/1 (D is overwritten); ``cnt``: points per patch."""
+    # A frame has ~100 patches of ~50 points, so numpy's per-call cost, not arithmetic, sets the
+    # time. Per-point quantities are therefore kept as contiguous planes (quantity, patch,
+    # point), on which every operation is one flat loop, and sums over a patch's points are
+    # matmuls (one BLAS call per patch).
     npatch, n = M.shape
     up = np.broadcast_to(np.asarray(up, dtype=np.float64), (npatch, 3))
     # D: x, y, z relative to the patch centroid, and the mask W (0/1). Padding points are
