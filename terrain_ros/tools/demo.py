@@ -479,26 +479,38 @@ class Monitor:
     def _on_icp(self, msg) -> None:
         from terrain_ros.conversions import pose_to_matrix, stamp_to_sec
         self._count('/icp/pose')
+        try:
+            T = pose_to_matrix(msg.pose)
+        except ValueError:      # a refused pose must not leave the stamp list one longer
+            return
         with self.lock:
             self.icp_t.append(stamp_to_sec(msg.header.stamp))
-            self.icp_T.append(pose_to_matrix(msg.pose))
+            self.icp_T.append(T)
 
     def _on_correction(self, msg) -> None:
         from terrain_ros.conversions import pose_to_matrix
         self._count('/icp/correction')
+        try:
+            T = pose_to_matrix(msg.pose)
+        except ValueError:
+            return
         with self.lock:
             # Receipt time on the sim clock: when the estimate jumps.
             self.corr_t.append(self.sim_t if self.sim_t is not None else 0.0)
-            self.corr_T.append(pose_to_matrix(msg.pose))
+            self.corr_T.append(T)
 
     def _on_dr(self, msg) -> None:
         from terrain_ros.conversions import pose_to_matrix, stamp_to_sec
         self._count('/odom/dead_reckoning')
         t = stamp_to_sec(msg.header.stamp)
+        try:
+            T = pose_to_matrix(msg.pose.pose)
+        except ValueError:
+            return
         with self.lock:
             if not self.dr_t or t - self.dr_t[-1] >= 0.02 - 1e-6:
                 self.dr_t.append(t)
-                self.dr_T.append(pose_to_matrix(msg.pose.pose))
+                self.dr_T.append(T)
 
     def _on_joints(self, msg) -> None:
         from terrain_ros.conversions import stamp_to_sec
