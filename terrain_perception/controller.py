@@ -106,6 +106,11 @@ class WalkingConfig:
                                  'far below its foothold looking for the ground [m]', 0.0, 0.2)
     probe_speed_m_s: float = param(0.03, 'Descent speed while probing for the ground [m/s]',
                                    0.001, 1.0)
+    body_tilt_gain: float = param(0.0, 'Share of the slope of the stance feet\'s plane (front '
+                                  'vs hind, left vs right) by which the body pitches and rolls '
+                                  'with it, so legs on higher ground are not folded while the '
+                                  'others stretch (0 = level body) [-]', 0.0, 1.0)
+    max_body_tilt_deg: float = param(15.0, 'Cap of that body pitch and roll [deg]', 0.0, 45.0)
     attitude_gain: float = param(0.7, 'Share of the measured body tilt (IMU) that each body '
                                  'shift corrects by re-estimating the stance feet heights and '
                                  'changing the legs\' lengths (0 = level-body open loop) [-]',
@@ -135,7 +140,7 @@ class _Segment:
     t0: float
     duration: float
     spline: CubicSpline           # joint angles (12,) over [0, duration]
-    body_fn: Callable             # tau -> (x, y, z, yaw) (odom)
+    body_fn: Callable             # tau -> (x, y, z, yaw, pitch, roll) (odom)
     feet_end: np.ndarray          # (4, 3) contact points at the end (odom)
     body_end: np.ndarray          # (x, y, z, yaw) at the end
     legs: tuple = ()              # swinging legs
@@ -224,7 +229,7 @@ class WalkingController:
         self.status = 'idle'
         self.last_error = ''
         self._feet = None          # (4, 3) contact points (odom)
-        self._body = None          # (x, y, z, yaw) at rest (odom)
+        self._body = None          # (x, y, z, yaw, pitch, roll) at rest (odom)
         self._queue: list = []
         self._plan_t = -np.inf
         self._seg: Optional[_Segment] = None
@@ -267,7 +272,7 @@ class WalkingController:
         feet[:, 2] -= m.foot_radius_m
         self._feet = feet
         self._phi_ref = _shank_angles(q)
-        self._body = np.array([T[0, 3], T[1, 3], T[2, 3], yaw])
+        self._body = np.array([T[0, 3], T[1, 3], T[2, 3], yaw, 0.0, 0.0])
         self._seg = None
         self._pending_swing = None
         self._queue = []
@@ -365,6 +370,10 @@ class WalkingController:
             R = np.asarray(attitude, dtype=float).reshape(3, 3)
             if np.all(np.isfinite(R)):
                 self._R_tilt = rot_z(-float(np.arctan2(R[1, 0], R[0, 0]))) @ R
+                if self._body is not None:
+                    # what the levelling corrects is the tilt beyond the commanded one
+                    self._R_tilt = self._R_tilt @ gaitlib.pose_to_T(
+                        np.r_[0.0, 0.0, 0.0, 0.0, self._body[4:6]])[:3, :3].T
         while self._seg is not None and t >= self._seg.t_end:
             self._finish_segment()
             self._seg = self._next_segment(max(t, self._t))
@@ -421,8 +430,8 @@ class WalkingController:
         a = self._seg.body_fn(max(tau - h, 0.0))
         b = self._seg.body_fn(min(tau + h, self._seg.duration))
         dt = min(tau + h, self._seg.duration) - max(tau - h, 0.0)
-        d = (b - a) / dt if dt > 0 else np.zeros(4)
-        return d[:3], np.array([0.0, 0.0, d[3]])
+        d = (b - a) / dt if dt > 0 else np.zeros(6)
+        return d[:3], np.array([d[5], d[4], d[3]])
 
     @property
     def feet(self) -> np.ndarray:
@@ -478,7 +487,7 @@ class WalkingController:
     # -- internals ------------------------------------------------------------------------
     def _body_now(self) -> np.ndarray:
         if self._body is None:
-            return np.zeros(4)
+            return np.zeros(6)
         if self._seg is None:
             return self._body.copy()
         tau = np.clip(self._t - self._seg.t0, 0.0, self._seg.duration)
@@ -619,8 +628,8 @@ class WalkingController:
                 return f
 
             def body_fn(tau):
-                return np.broadcast_to(body, np.shape(tau) + (4,)).copy() if np.ndim(tau) \
-                    else body.copy()
+                return np.broadcast_to(body, np.shape(tau) + body.shape).copy() \
+                    if np.ndim(tau) else body.copy()
 
             seg = self._build(t0, dur, 'probe', body_fn, feet_fn, rolling)
             if seg is not None:
@@ -658,11 +667,21 @@ class WalkingController:
             self._queue = []
         return self._recenter(t0)
 
+    def _goal_pose(self, feet: np.ndarray) -> np.ndarray:
+        """Nominal body ``(x, y, z, yaw, pitch, roll)`` over ``feet``: level, or tilted with
+        the feet's plane by ``body_tilt_gain``."""
+        goal = gaitlib.body_pose_from_feet(feet, self.model.standing_height_m)
+        c = self.config
+        pitch, roll = gaitlib.body_tilt_from_feet(feet, float(goal[3]), c.body_tilt_gain,
+                                                  np.radians(c.max_body_tilt_deg))
+        return np.r_[goal, pitch, roll]
+
     def _recenter(self, t0: float) -> Optional[_Segment]:
         if not self.config.recenter:
             return None
-        goal = gaitlib.body_pose_from_feet(self._feet, self.model.standing_height_m)
-        if np.linalg.norm(goal[:3] - self._body[:3]) < 2e-3 and abs(goal[3] - self._body[3]) \
+        goal = self._goal_pose(self._feet)
+        if np.linalg.norm(goal[:3] - self._body[:3]) < 2e-3 and \
+                np.abs(goal[3:] - self._body[3:]).max() \
                 < 2e-3:
             return None
         return self._shift_segment(goal, t0, legs_swing=())
@@ -701,7 +720,7 @@ class WalkingController:
             return None
         after = self._feet.copy()
         after[legs] = targets
-        goal = gaitlib.body_pose_from_feet(after, m.standing_height_m)
+        goal = self._goal_pose(after)
         stay = [k for k in range(4) if k not in legs]
         support = self._feet[stay, :2]
         body = goal.copy()
@@ -787,7 +806,7 @@ class WalkingController:
             self.config.min_swing_hip_height * m.standing_height_m if len(legs) else -np.inf
         z = min(max(z_nominal, z_min), self._max_body_z(body, poses))
         cands = z + np.array([0.0] + [s * k * 0.004 for k in range(1, 11) for s in (1, -1)])
-        R = rot_z(float(body[3]))
+        R = gaitlib.pose_to_T(body)[:3, :3]
         centres = np.array(poses, dtype=float)
         centres[..., 2] += m.foot_radius_m
         base = np.array([body[0], body[1], 0.0])
@@ -799,7 +818,7 @@ class WalkingController:
         """Highest level-body z keeping every foot of ``feet_poses`` ``(n, 4, 3)`` within
         ``reach_fraction`` of the leg length from its hip-flexion origin."""
         m = self.model
-        R = rot_z(float(body[3]))
+        R = gaitlib.pose_to_T(body)[:3, :3]
         hips = m.leg_plane_offsets @ R.T + np.array([body[0], body[1], 0.0])
         centres = np.array(feet_poses, dtype=float)
         centres[..., 2] += m.foot_radius_m
@@ -811,7 +830,7 @@ class WalkingController:
     def _shift_segment(self, goal: np.ndarray, t0: float, legs_swing) -> Optional[_Segment]:
         start = self._body.copy()
         dyaw = (goal[3] - start[3] + np.pi) % (2 * np.pi) - np.pi
-        delta = np.concatenate([goal[:3] - start[:3], [dyaw]])
+        delta = np.concatenate([goal[:3] - start[:3], [dyaw], goal[4:6] - start[4:6]])
         dur = self.shift_s * float(np.clip(np.linalg.norm(delta[:2]) / max(
             0.25 * self.model.body_move_per_period_m, 1e-6), 0.3, 1.0))
         feet0 = self._feet.copy()
@@ -854,6 +873,8 @@ class WalkingController:
         if self._R_tilt is None or g <= 0.0 or self._q_last is None:
             return feet
         rel = kinematics.forward(self.model, self._q_last.reshape(4, 3))
+        # feet relative to the body in a yaw-free level frame, as commanded (body tilt)
+        rel = rel @ gaitlib.pose_to_T(np.r_[0.0, 0.0, 0.0, 0.0, self._body[4:6]])[:3, :3].T
         dz = (rel @ self._R_tilt.T)[:, 2] - rel[:, 2]
         if not np.all(np.isfinite(dz)):
             return feet
@@ -875,7 +896,7 @@ class WalkingController:
         feet0 = self._feet.copy()
 
         def body_fn(tau):
-            return np.broadcast_to(body, np.shape(tau) + (4,)).copy() if np.ndim(tau) \
+            return np.broadcast_to(body, np.shape(tau) + body.shape).copy() if np.ndim(tau) \
                 else body.copy()
 
         def feet_fn(tau):
@@ -922,11 +943,8 @@ class WalkingController:
         taus = np.linspace(0.0, dur, n + 1)
         bodies = body_fn(taus)
         feet = feet_fn(taus)
-        T = np.zeros((len(taus), 4, 4))
+        T = gaitlib.poses_to_T(bodies)
         c, s = np.cos(bodies[:, 3]), np.sin(bodies[:, 3])
-        T[:, 0, 0], T[:, 0, 1], T[:, 1, 0], T[:, 1, 1] = c, -s, s, c
-        T[:, 2, 2] = T[:, 3, 3] = 1.0
-        T[:, :3, 3] = bodies[:, :3]
         centres = feet.copy()
         centres[..., 2] += self.model.foot_radius_m
         rolling = np.ones(4, dtype=bool) if rolling is None else rolling
@@ -972,11 +990,11 @@ def check_footsteps(model: RobotModel, config: WalkingConfig, feet: np.ndarray,
     legs = np.asarray(legs, dtype=int).reshape(-1)
     positions = np.asarray(positions, dtype=float).reshape(-1, 3)
     ctl = WalkingController(model, config, height=height)
-    body = gaitlib.body_pose_from_feet(feet, model.standing_height_m)
+    body = ctl._goal_pose(feet)
     if T_body is not None:
         T_body = np.asarray(T_body, dtype=float)
-        body = np.array([T_body[0, 3], T_body[1, 3], T_body[2, 3],
-                         np.arctan2(T_body[1, 0], T_body[0, 0])])
+        body[:4] = [T_body[0, 3], T_body[1, 3], T_body[2, 3],
+                    np.arctan2(T_body[1, 0], T_body[0, 0])]
     q = ctl._ik(gaitlib.pose_to_T(body), feet)
     if q is None:
         body[2] = ctl._body_z(body[2], body, feet[None], [])

@@ -19,7 +19,7 @@ import numpy as np
 
 from terrain_perception.grid import GridMap
 from terrain_perception.robot_model import LEG_FRONT, LEG_NAMES, RobotModel
-from terrain_perception.transforms import make_T, rot_z
+from terrain_perception.transforms import make_T, rot_z, rpy_to_R
 
 LF, RF, LH, RH = 0, 1, 2, 3
 #: Statically stable crawl order (each swing is followed by the diagonally-opposite side's
@@ -210,8 +210,51 @@ def body_pose_from_feet(feet_xyz: np.ndarray, standing_height_m: float) -> tuple
 
 
 def pose_to_T(xyzyaw: np.ndarray) -> np.ndarray:
-    """4x4 level pose from ``(x, y, z, yaw)``."""
-    return make_T(rot_z(float(xyzyaw[3])), xyzyaw[:3])
+    """4x4 pose from ``(x, y, z, yaw)`` (level) or ``(x, y, z, yaw, pitch, roll)``
+    (``R = Rz(yaw) Ry(pitch) Rx(roll)``)."""
+    v = np.asarray(xyzyaw, dtype=float)
+    if len(v) >= 6 and (v[4] != 0.0 or v[5] != 0.0):
+        return make_T(rpy_to_R(float(v[5]), float(v[4]), float(v[3])), v[:3])
+    return make_T(rot_z(float(v[3])), v[:3])
+
+
+def poses_to_T(bodies: np.ndarray) -> np.ndarray:
+    """``(n, 4, 4)`` poses of ``(n, 4)`` or ``(n, 6)`` body vectors (see :func:`pose_to_T`)."""
+    b = np.asarray(bodies, dtype=float)
+    n = len(b)
+    cy, sy = np.cos(b[:, 3]), np.sin(b[:, 3])
+    T = np.zeros((n, 4, 4))
+    T[:, 3, 3] = 1.0
+    T[:, :3, 3] = b[:, :3]
+    if b.shape[1] < 6:
+        T[:, 0, 0], T[:, 0, 1], T[:, 1, 0], T[:, 1, 1] = cy, -sy, sy, cy
+        T[:, 2, 2] = 1.0
+        return T
+    cp, sp = np.cos(b[:, 4]), np.sin(b[:, 4])
+    cr, sr = np.cos(b[:, 5]), np.sin(b[:, 5])
+    T[:, 0, 0], T[:, 0, 1], T[:, 0, 2] = cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr
+    T[:, 1, 0], T[:, 1, 1], T[:, 1, 2] = sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr
+    T[:, 2, 0], T[:, 2, 1], T[:, 2, 2] = -sp, cp * sr, cp * cr
+    return T
+
+
+def body_tilt_from_feet(feet_xyz: np.ndarray, yaw: float, gain: float,
+                        max_rad: float) -> tuple:
+    """``(pitch, roll)`` [rad] that tilt the body ``gain`` of the way towards the plane of the
+    four contact points ``(4, 3)``: front-hind and left-right height differences over their
+    spacing along and across the heading ``yaw``, each capped at ``max_rad``. Positive pitch
+    lowers the nose (front feet lower), positive roll raises the left side."""
+    if gain <= 0.0:
+        return 0.0, 0.0
+    f = np.asarray(feet_xyz, dtype=np.float64)
+    h, lat = np.array([np.cos(yaw), np.sin(yaw)]), np.array([-np.sin(yaw), np.cos(yaw)])
+    front, hind = f[LEG_FRONT > 0].mean(axis=0), f[LEG_FRONT < 0].mean(axis=0)
+    left, right = f[[0, 2]].mean(axis=0), f[[1, 3]].mean(axis=0)
+    dx = max(float((front[:2] - hind[:2]) @ h), 1e-3)
+    dy = max(float((left[:2] - right[:2]) @ lat), 1e-3)
+    pitch = -gain * np.arctan2(front[2] - hind[2], dx)
+    roll = gain * np.arctan2(left[2] - right[2], dy)
+    return (float(np.clip(pitch, -max_rad, max_rad)), float(np.clip(roll, -max_rad, max_rad)))
 
 
 # -- footstep sequences -------------------------------------------------------------------

@@ -256,3 +256,35 @@ def test_check_footsteps_dry_runs_the_controllers_own_refusals():
     ctl.set_footsteps(legs[:4], long, 'walk', 0.0)
     _run(ctl, 0.0, 30.0)
     assert ctl.steps_done == 1 and 'longer than' in ctl.last_error
+
+
+def test_body_tilts_with_the_feet_plane_and_keeps_legs_mid_range():
+    """Front feet step onto a 4 cm ledge. With body_tilt_gain 1 the body ends pitched nose-up
+    by the feet plane's slope, the commanded feet are where they were planned, and the most
+    stretched leg is less stretched than with the level body (gain 0)."""
+    m = load_robot_model('littledog')
+    T = make_T(np.eye(3), [0.0, 0.0, m.standing_height_m])
+    legs, pos = G.straight_footsteps(m, T, 0.05)
+    legs, pos = legs[:4], pos[:4].copy()
+    pos[legs < 2, 2] += 0.04                      # LF, RF onto the ledge
+    stretch = {}
+    for gain in (1.0, 0.0):
+        ctl = WalkingController(m, WalkingConfig(plan_timeout_s=1e3, body_tilt_gain=gain))
+        ctl.reset(0.0, None, T)
+        ctl.set_footsteps(legs, pos, 'walk', 0.0)
+        last = []
+        _run(ctl, 0.0, 30.0, lambda t, cmd: last.__setitem__(slice(None), [cmd]))
+        assert ctl.steps_done == 4, ctl.last_error
+        feet = _feet_from_command(ctl, last[0])
+        # contacts roll with the shank angle during later shifts (up to ~half a foot radius)
+        np.testing.assert_allclose(feet[legs, :2], pos[:, :2], atol=0.5 * m.foot_radius_m)
+        np.testing.assert_allclose(feet[legs, 2], pos[:, 2], atol=0.003)
+        R = ctl.odom_pose[:3, :3]
+        pitch = float(np.arcsin(-R[2, 0]))
+        spacing = np.mean(pos[legs < 2, 0]) - np.mean(pos[legs >= 2, 0])
+        expect = -gain * np.arctan2(0.04, spacing)
+        assert pitch == pytest.approx(expect, abs=2e-3)
+        centres = K.forward(m, last[0].positions.reshape(4, 3))
+        stretch[gain] = float(np.max(np.linalg.norm(
+            centres - np.array(m.leg_plane_offsets), axis=1)))
+    assert stretch[1.0] < stretch[0.0] - 0.003

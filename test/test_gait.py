@@ -92,3 +92,28 @@ def test_straight_footsteps_end_on_the_commanded_stance(gait):
                                       m.standing_height_m, 0.3], atol=1e-12)
     with pytest.raises(ValueError, match='max_step_length'):
         G.straight_footsteps(m, T, 1.0, 0.5)
+
+
+def test_body_tilt_follows_the_feet_plane_and_poses_agree():
+    """Front feet 4 cm above the hind ones, 0.2 m apart: the nose pitches up by gain x
+    atan(0.04 / 0.2) (negative pitch); left 2 cm above right, 0.14 m apart: roll up on the
+    left. The cap holds, gain 0 is level, and the batched poses equal the single ones."""
+    feet = np.array([[0.1, 0.07, 0.06], [0.1, -0.07, 0.04], [-0.1, 0.07, 0.02],
+                     [-0.1, -0.07, 0.0]])
+    pitch, roll = G.body_tilt_from_feet(feet, 0.0, 1.0, np.radians(30))
+    assert pitch == pytest.approx(-np.arctan2(0.04, 0.2))
+    assert roll == pytest.approx(np.arctan2(0.02, 0.14))
+    half = G.body_tilt_from_feet(feet, 0.0, 0.5, np.radians(30))
+    assert half == pytest.approx((0.5 * pitch, 0.5 * roll))
+    assert G.body_tilt_from_feet(feet, 0.0, 1.0, np.radians(5)) == pytest.approx(
+        (-np.radians(5), np.radians(5)))
+    assert G.body_tilt_from_feet(feet, 0.0, 0.0, 1.0) == (0.0, 0.0)
+    # walking along -x: front and hind swap, so the same feet pitch the other way
+    assert G.body_tilt_from_feet(feet[[2, 3, 0, 1]], np.pi, 1.0, 1.0)[0] == \
+        pytest.approx(-pitch)
+    bodies = np.array([[0.1, 0.2, 0.3, 0.4, pitch, roll], [0, 0, 0.1, -2.0, 0.0, 0.0]])
+    T = G.poses_to_T(bodies)
+    for k in range(2):
+        np.testing.assert_allclose(T[k], G.pose_to_T(bodies[k]), atol=1e-12)
+    # the tilted body's x axis climbs towards the front feet
+    assert T[0, 2, 0] > 0
