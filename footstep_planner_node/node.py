@@ -326,6 +326,8 @@ class FootstepPlannerNode(Node):
                                            'walk', self.grid, T_body=self.T_map_base)
                 plan = self.planner.plan_checked(self.T_map_base, self.goal_xy, feet, check,
                                                  patches=patches, first_leg=first_leg)
+                if plan.check_note:
+                    self.counters.bump('plan_changed_by_controller_check', plan.check_note)
             else:
                 plan = self.planner.plan(self.T_map_base, self.goal_xy, feet=feet,
                                          first_leg=first_leg, patches=patches)

@@ -169,6 +169,7 @@ class FootstepPlan:
     body_move_per_period_m: float = 0.0
     initial_feet: Optional[np.ndarray] = None   # (4, 3) contact points the plan starts from
     yaw: float = 0.0                            # walking direction [rad, map]
+    check_note: str = ''                        # what plan_checked cut or changed, and why
 
     @property
     def ok(self) -> bool:
@@ -646,12 +647,15 @@ class FootstepPlanner:
                 refusal = refusal or why
                 continue
             if n < len(p.footsteps):
-                p.status_text += (f' (kept {n} of {len(p.footsteps)} steps: the controller '
-                                  f'would refuse the next: {why})')
+                p.check_note = (f'kept {n} of {len(p.footsteps)} steps: the controller '
+                                f'would refuse the next: {why}')
+                p.status_text += f' ({p.check_note})'
                 p.footsteps = p.footsteps[:n]
             if leg != first:
-                p.status_text = (f'{LEG_NAMES[leg]} first: the controller would refuse '
-                                 f'{LEG_NAMES[first]} first ({refusal}); ' + p.status_text)
+                note = (f'{LEG_NAMES[leg]} first: the controller would refuse '
+                        f'{LEG_NAMES[first]} first ({refusal})')
+                p.check_note = note + ('; ' + p.check_note if p.check_note else '')
+                p.status_text = note + '; ' + p.status_text
             return p
         return failed(STATUS_NO_FOOTHOLD, 'the controller would refuse the first step of every '
                       f'plan from this stance ({refusal})')

@@ -394,6 +394,7 @@ def test_plan_checked_keeps_what_the_executor_accepts():
     cut = planner.plan_checked(_pose(), goal, feet, lambda legs, pos: (2, 'too far'),
                                first_leg=fs.LH)
     assert cut.ok and len(cut.footsteps) == 2 and 'kept 2 of 4' in cut.status_text
+    assert 'too far' in cut.check_note
     for a, b in zip(cut.footsteps, full.footsteps):
         np.testing.assert_allclose(a.position, b.position)
 
@@ -405,6 +406,7 @@ def test_plan_checked_keeps_what_the_executor_accepts():
     other = planner.plan_checked(_pose(), goal, feet, not_lh, first_leg=fs.LH)
     assert other.ok and other.footsteps[0].leg != fs.LH
     assert 'LH refused' in other.status_text and calls[0] == fs.LH
+    assert 'LH refused' in other.check_note and not full.check_note
 
     none = planner.plan_checked(_pose(), goal, feet, lambda legs, pos: (0, 'nothing fits'),
                                 first_leg=fs.LH)
