@@ -19,7 +19,6 @@ import numpy as np
 
 from terrain_perception.grid import GridMap
 from terrain_perception.robot_model import LEG_FRONT, LEG_NAMES, RobotModel
-from terrain_perception.transforms import make_T, rot_z, rpy_to_R
 
 LF, RF, LH, RH = 0, 1, 2, 3
 #: Statically stable crawl order (each swing is followed by the diagonally-opposite side's
@@ -212,10 +211,7 @@ def body_pose_from_feet(feet_xyz: np.ndarray, standing_height_m: float) -> tuple
 def pose_to_T(xyzyaw: np.ndarray) -> np.ndarray:
     """4x4 pose from ``(x, y, z, yaw)`` (level) or ``(x, y, z, yaw, pitch, roll)``
     (``R = Rz(yaw) Ry(pitch) Rx(roll)``)."""
-    v = np.asarray(xyzyaw, dtype=float)
-    if len(v) >= 6 and (v[4] != 0.0 or v[5] != 0.0):
-        return make_T(rpy_to_R(float(v[5]), float(v[4]), float(v[3])), v[:3])
-    return make_T(rot_z(float(v[3])), v[:3])
+    return poses_to_T(np.asarray(xyzyaw, dtype=float)[None])[0]
 
 
 def poses_to_T(bodies: np.ndarray) -> np.ndarray:
