@@ -5,6 +5,8 @@
   the grid's own ``cost`` layer or one computed here by :func:`cost_layer`.
 * **Receding-horizon search** (paper 000 sec. IV): the next ``horizon_steps`` footsteps in crawl
   order LH, LF, RH, RF, by a small beam search. Each foothold is a cell of its leg's search area
+  (``lateral_search_m`` either side of the leg's line; ``blocked_lateral_search_m`` when nothing
+  in that lane is half a stride ahead, so a leg steps around a rock instead of inching up to it)
   that (a) has a finite cost, (b) was observed, or was filled with a finite line-of-sight upper
   bound close to its value, (c) is safe for the foot on the map (:func:`unsafe_cells`: slope and
   unevenness limits, applied at ``map_safety_factor`` of their values because the map is
@@ -81,6 +83,11 @@ class PlannerConfig:
                               'steps in place is no plan', 0.0, 1.0)
     lateral_search_m: float = param(0.03, 'half-width of each search area across the walking '
                                     'direction [m]', 0.0, 1.0)
+    blocked_lateral_search_m: float = param(
+        0.09, 'half-width across the walking direction of the search area of a blocked leg: one '
+        'whose normal area has no foothold at least half a stride (A/2) ahead, e.g. a rock '
+        'filling its lane; the leg then steps around it instead of inching up to it (0 = off) '
+        '[m]', 0.0, 1.0)
     cost_offset: float = param(0.02, 'added to the cost before the omega weighting so that '
                                'equal-cost cells still prefer the area centre [cost units]',
                                0.0, 1e3)
@@ -103,7 +110,7 @@ class PlannerConfig:
                                   'their plane, in foot radii (edges, cracks, knobs); 0 = no '
                                   'safety filter', 0.0, 100.0)
     map_safety_factor: float = param(
-        0.9, 'the safety filter on the map flags cells beyond this share of the unevenness and '
+        0.85, 'the safety filter on the map flags cells beyond this share of the unevenness and '
         'slope limits: a map coarser and noisier than the terrain under-reads the edges the '
         'foot meets (1 = no margin)', 0.1, 1.0)
     max_leg_spread_m: float = param(
@@ -483,16 +490,18 @@ class FootstepPlanner:
         fallback = T_map_base[2, 3] - self.robot.standing_height_m
         return np.c_[xy, np.where(np.isfinite(z), z, fallback)]
 
-    def _area(self, foot_u: float, nom_u: float, nom_v: float, wL: float, A: float):
+    def _area(self, foot_u: float, nom_u: float, nom_v: float, wL: float, A: float,
+              lateral_m: Optional[float] = None):
         """Search area of one leg: along-track [foot + min_step, nominal + wL + 2A] (capped by the
-        max step length), across-track nominal +- lateral_search. Returns (u, v, centre_u)."""
+        max step length), across-track nominal +- ``lateral_m`` (default lateral_search).
+        Returns (u, v, centre_u)."""
         res = self.grid.resolution_m
         lo = foot_u + self.cfg.min_step_m
         hi = min(nom_u + wL + 2.0 * A, foot_u + self.robot.max_step_length_m)
         hi = max(hi, lo)
         centre = 0.5 * (lo + hi)
         us = np.arange(lo, hi + 0.5 * res, res) if hi > lo else np.array([lo])
-        w = self.cfg.lateral_search_m
+        w = self.cfg.lateral_search_m if lateral_m is None else lateral_m
         vs = nom_v + np.arange(-w, w + 0.5 * res, res) if w > 0 else np.array([nom_v])
         U, V = np.meshgrid(us, vs, indexing='ij')
         return U.ravel(), V.ravel(), centre
@@ -794,12 +803,14 @@ class FootstepPlanner:
         return T
 
     # ---- walk (crawl) beam search ------------------------------------------------------------
-    def _candidates(self, state: _State, leg: int, feet0: np.ndarray, wL0: float, A: float,
-                    Tb: np.ndarray):
-        """Scored candidate footholds of ``leg`` (in its period's search area)."""
+    def _area_cells(self, state: _State, leg: int, fu0: np.ndarray, wL0: float, A: float,
+                    Tb: np.ndarray, lateral_m: float):
+        """The cells of ``leg``'s search area (half-width ``lateral_m``) that are allowed, keep
+        the stance within the spread limits and are in reach from the body pose ``Tb``: ``(points
+        (k, 3), u, v, cells (k, 2), area centre u)``, or ``(None, why not)``."""
         cfg, g = self.cfg, self.grid
-        fu0, _ = self._uv(feet0)
-        u, v, centre = self._area(fu0[leg], self.nom_u[leg], self.nom_v[leg], wL0, A)
+        u, v, centre = self._area(fu0[leg], self.nom_u[leg], self.nom_v[leg], wL0, A,
+                                  lateral_m)
         xy = self._to_map(u, v)
         ij, inside = self._cells(xy)
         ok = inside & self.allowed[ij[:, 0], ij[:, 1]]
@@ -834,6 +845,26 @@ class FootstepPlanner:
         if not np.any(reach):
             return None, 'no cell of its search area is within reach'
         pts, u, v, ij = pts[reach], u[reach], v[reach], ij[reach]
+        return pts, u, v, ij, centre
+
+    def _candidates(self, state: _State, leg: int, feet0: np.ndarray, wL0: float, A: float,
+                    Tb: np.ndarray):
+        """Scored candidate footholds of ``leg`` (in its period's search area)."""
+        cfg = self.cfg
+        fu0, _ = self._uv(feet0)
+        found = self._area_cells(state, leg, fu0, wL0, A, Tb, cfg.lateral_search_m)
+        wide = cfg.blocked_lateral_search_m
+        if wide > cfg.lateral_search_m and (
+                found[0] is None or np.max(found[1]) < fu0[leg] + 0.5 * A):
+            # Blocked: nothing half a stride ahead in the leg's lane (typically a rock filling
+            # it). Inching up to the obstacle only lets the other legs close up on this one, so
+            # search around it; the nominal-distance cost still prefers the lane.
+            more = self._area_cells(state, leg, fu0, wL0, A, Tb, wide)
+            if more[0] is not None and (found[0] is None or np.max(more[1]) > np.max(found[1])):
+                found = more
+        if found[0] is None:
+            return None, found[1]
+        pts, u, v, ij, centre = found
         cost = self.cost[ij[:, 0], ij[:, 1]]
         omega = (cfg.distance_weight_gain * ((u - centre) ** 2 + (v - self.nom_v[leg]) ** 2)
                  + A) / max(A, 1e-9)

@@ -378,6 +378,43 @@ def test_a_lagging_front_foot_keeps_its_hind_foot_a_stance_length_behind():
     assert gaps[0.0] < 0.65 * spacing - 0.02
 
 
+def test_a_leg_blocked_in_its_lane_steps_around_the_obstacle():
+    """A 5 cm roof-shaped block fills RF's lane (+-3 cm of its nominal line) from 5 cm to 30
+    cm ahead of the foot: no safe cell in the lane is half a stride ahead. With the wider
+    search of a blocked leg RF steps beside the block, at least A/2 ahead, onto a safe cell;
+    without it (0) it can only inch up to the block, the test's counterfactual."""
+    n = 150
+    origin = (-0.75, -0.75)
+    nom = np.array(ROBOT.nominal_feet)
+    x = origin[0] + (np.arange(n) + 0.5) * RES
+    y = origin[1] + (np.arange(n) + 0.5) * RES
+    X, Y = np.meshgrid(x, y, indexing='ij')
+    rf = nom[fs.RF]
+    box = (X > rf[0] + 0.05) & (X < rf[0] + 0.30) & (np.abs(Y - rf[1]) < 0.045)
+    # A roof, not a flat top: every cell on it is steeper than the slope limit (39 deg).
+    h = np.where(box, 0.05 - 0.8 * np.abs(Y - rf[1]), 0.0)
+    g = _grid(h, origin)
+    feet = nom.copy()
+    feet[:, 2] = 0.0
+    A = ROBOT.body_move_per_period_m
+    advance = {}
+    for wide in (0.09, 0.0):
+        cfg = fs.PlannerConfig(trot_threshold_m=0.0, horizon_steps=1, recovery=False,
+                               blocked_lateral_search_m=wide)
+        planner = fs.FootstepPlanner(ROBOT, cfg)
+        assert planner.set_map(g) is None
+        assert not planner.allowed[box].any()
+        plan = planner.plan(_pose(), np.array([0.6, 0.0]), feet=feet, first_leg=fs.RF)
+        assert plan.ok and plan.footsteps[0].leg == fs.RF, plan.status_text
+        _check_plan_feasible(plan, cfg)
+        p = plan.footsteps[0].position
+        ij = g.world_to_index(p[:2])
+        assert planner.allowed[ij[0], ij[1]]
+        advance[wide] = (p[0] - rf[0], abs(p[1] - rf[1]))
+    assert advance[0.09][0] >= 0.5 * A and advance[0.09][1] > 0.03
+    assert advance[0.0][0] < 0.5 * A
+
+
 def test_plan_checked_keeps_what_the_executor_accepts():
     """plan_checked: a check accepting two steps cuts the plan to two (status says so); a check
     refusing any plan that starts with the planned first leg gets a plan starting with another
