@@ -510,16 +510,24 @@ def _gram(A: np.ndarray) -> np.ndarray:
     return np.matmul(A.transpose(1, 0, 2), A.transpose(1, 2, 0))
 
 
-def _residuals(q: np.ndarray, K: np.ndarray, W: np.ndarray, out: np.ndarray) -> np.ndarray:
-    """Masked residuals ``(0.5 (kx x^2 + ky y^2) - (z - h)) W`` of frame coordinates ``q``
-    (planes (3+, P, n)) for the per-patch ``K = (kx, ky, h)`` (3, P), written to ``out``."""
-    sq = q[:2] * q[:2]
-    sq *= K[:2, :, None]
-    np.add(sq[0], sq[1], out=out)
-    out *= 0.5
-    out -= q[2] - K[2, :, None]
-    out *= W
-    return out
+def _finish_residuals(X: np.ndarray, K: np.ndarray, tmp: np.ndarray) -> None:
+    """Rows 0, 1 (``q_x^2 / 2``, ``q_y^2 / 2``) and 6 (the masked residuals
+    ``(0.5 (kx q_x^2 + ky q_y^2) - (q_z - h)) W``) of the LM planes ``X`` (10, P, n) (see
+    :func:`_fit_paraboloids`) from its frame coordinates (rows 7-9) and mask (row 5), for the
+    per-patch ``K = (kx, ky, h)`` (3, P); ``tmp``: scratch planes (2, P, n)."""
+    np.multiply(X[7:9], X[7:9], out=X[0:2])
+    X[0:2] *= 0.5
+    np.multiply(X[0:2], K[:2, :, None], out=tmp)
+    np.add(tmp[0], tmp[1], out=X[6])
+    np.subtract(X[9], K[2, :, None], out=tmp[0])
+    X[6] -= tmp[0]
+    X[6] *= X[5]
+
+
+def _planes(buf: np.ndarray, rows: int, na: int, n: int) -> np.ndarray:
+    """The first ``rows * na * n`` elements of the flat buffer ``buf`` as contiguous planes
+    ``(rows, na, n)``."""
+    return buf[:rows * na * n].reshape(rows, na, n)
 
 
 def fit_paraboloids(points: np.ndarray, mask: np.ndarray, up: np.ndarray,
@@ -555,7 +563,7 @@ def fit_paraboloids(points: np.ndarray, mask: np.ndarray, up: np.ndarray,
 
 
 def _fit_paraboloids(D: np.ndarray, M: np.ndarray, cnt: np.ndarray, up: np.ndarray,
-                     iterations: int) -> ParaboloidFit:
+                     iterations: int, ws: Optional[_Workspace] = None) -> ParaboloidFit:
     """:func:`fit_paraboloids` on the planes ``D`` ``(4, P, n)``: x, y, z with padding points
     zeroed, and the mask as 0/1 (D is overwritten); ``cnt``: points per patch."""
     # A frame has ~100 patches of ~50 points, so numpy's per-call cost, not arithmetic, sets the
@@ -612,66 +620,83 @@ def _fit_paraboloids(D: np.ndarray, M: np.ndarray, cnt: np.ndarray, up: np.ndarr
 
     # LM on each patch until its own squared residual stops dropping by more than 0.1 % (or
     # `iterations`); converged patches leave the batch (their state is written back then), so
-    # later iterations are cheap. Q: the points in the patch frame before the offset h
-    # (R^T (p - c)) and their residuals.
+    # later iterations are cheap.
+    #
+    # The active patches' per-point planes live in one block X (10, na, n), rows
+    #   0-4  J: d r / d (kx, ky, omega) (rows 0, 1 = q_x^2 / 2, q_y^2 / 2 are part of the state,
+    #        rows 2-4 are recomputed each iteration)
+    #   5    W, the d r / d h row (padding points have q = 0, so only this row needs W)
+    #   6    r, the residuals
+    #   7-9  q: the points in the patch frame before the offset h, R^T (p - c)
+    # so that rows 0-6 are [J; r] and one Gram matrix gives the Gauss-Newton matrix J^T J and
+    # the gradient J^T r. A step's candidate state is computed into a second block Y; accepting
+    # it swaps the blocks (rejected patches copy their old state over), so no iteration allocates
+    # or copies whole planes. Q: the final planes r, q_x, q_y, q_z of every patch.
     Q = np.empty((4, npatch, n))
-    _residuals(_to_frames(R, d, Q[:3]), K, W, Q[3])
-    cur = np.einsum('pn,pn->p', Q[3], Q[3])
+    bufs = [_array(ws, f'lm{k}', (10 * npatch * n,), np.float64) for k in range(2)]
+    tbuf = _array(ws, 'lmt', (2 * npatch * n,), np.float64)
+    X, Y = _planes(bufs[0], 10, npatch, n), _planes(bufs[1], 10, npatch, n)
+    X[5] = Y[5] = W
+    T = _planes(tbuf, 2, npatch, n)
+    _to_frames(R, d, X[7:10])
+    _finish_residuals(X, K, T)
+    cur = np.einsum('pn,pn->p', X[6], X[6])
     lam = np.full(npatch, 1e-3)
     act = np.arange(npatch)
-    Ra, Ka, Qa, Wa = R, K, Q, W
-    JR = np.empty((7, npatch, n))
+    Ra, Ka = R, K
     for _ in range(iterations):
-        na = len(act)
-        qx, qy, qz, r = Qa
-        # Rows: d r / d (kx, ky, omega, h), then r itself, so that one Gram matrix gives the
-        # Gauss-Newton matrix J^T J and the gradient J^T r. With g = d r / d q = (gx, gy, -1),
-        # d r / d omega = (g x q)^T; padding points have q = 0, so only the h row needs W.
-        J = JR[:, :na]
-        np.multiply(Qa[:2], Qa[:2], out=J[:2])
-        J[:2] *= 0.5
-        g = Ka[:2, :, None] * Qa[:2]
-        gz = g * qz
-        np.add(gz[1], qy, out=J[2])
-        np.subtract(-qx, gz[0], out=J[3])
-        np.multiply(g[0], qy, out=J[4])
-        J[4] -= g[1] * qx
-        J[5] = Wa
-        J[6] = r
-        G = _gram(J)
-        H = G[:, :6, :6].copy()
-        diag = H.reshape(-1, 36)[:, ::7]
-        diag *= 1.0 + lam[:, None]                         # LM damping lam * diag(H)
+        qx, qy, qz = X[7:10]
+        # With g = d r / d q = (gx, gy, -1) = (kx qx, ky qy, -1), d r / d omega = (g x q)^T:
+        # rows 2-4 = (gy qz + qy, -qx - gx qz, gx qy - gy qx).
+        g = np.multiply(Ka[:2, :, None], X[7:9], out=T)
+        np.multiply(g[1], qz, out=X[2])
+        X[2] += qy
+        np.multiply(g[0], qz, out=X[3])
+        X[3] += qx
+        np.negative(X[3], out=X[3])                        # -(qx + gx qz) = -qx - gx qz exactly
+        np.multiply(g[0], qy, out=X[4])
+        np.multiply(g[1], qx, out=g[0])
+        X[4] -= g[0]
+        G = _gram(X[:7])
+        # LM damping lam * diag(H), in place on the Gram matrix (H is its 6x6 block)
+        diag = G.reshape(-1, 49)[:, 0:42:8]
+        diag *= 1.0 + lam[:, None]
         diag += 1e-12 * lam[:, None]
-        step = np.linalg.solve(H, G[:, :6, 6:])[..., 0]   # (the step is minus this)
+        step = np.linalg.solve(G[:, :6, :6], G[:, :6, 6:])[..., 0]   # (the step is minus this)
         E = _expmap(-step[:, 2:5])
         R_new = Ra @ E
         K_new = Ka - step[:, [0, 1, 5]].T
-        Q_new = np.empty_like(Qa)
-        _to_frames(E, Qa[:3], Q_new[:3])                   # R_new^T (p - c) = E^T R^T (p - c)
-        _residuals(Q_new, K_new, Wa, Q_new[3])
-        new = np.einsum('pn,pn->p', Q_new[3], Q_new[3])
+        _to_frames(E, X[7:10], Y[7:10])                    # R_new^T (p - c) = E^T R^T (p - c)
+        _finish_residuals(Y, K_new, T)
+        new = np.einsum('pn,pn->p', Y[6], Y[6])
         ok = new < cur
         go = (cur - new > 1e-3 * cur) | ~ok                # rejected steps retry with more damping
         lam = np.minimum(np.maximum(lam * np.where(ok, 0.1, 10.0), 1e-9), 1e9)
         go &= lam < 1e9
-        if ok.all():
-            Ra, Ka, Qa, cur = R_new, K_new, Q_new, new
-        else:                                              # keep the old state where rejected
-            Ra = np.where(ok[:, None, None], R_new, Ra)
-            Ka = np.where(ok, K_new, Ka)
-            Qa = np.where(ok[:, None], Q_new, Qa)
-            cur = np.where(ok, new, cur)
+        if not ok.all():                                   # keep the old state where rejected
+            rej = np.flatnonzero(~ok)
+            Y[:, rej] = X[:, rej]
+            R_new[rej] = Ra[rej]
+            K_new[:, rej] = Ka[:, rej]
+            new[rej] = cur[rej]
+        X, Y, Ra, Ka, cur = Y, X, R_new, K_new, new
+        bufs.reverse()
         if not go.all():
-            done = act[~go]
-            R[done], K[:, done], Q[:, done] = Ra[~go], Ka[:, ~go], Qa[:, ~go]
-            if not go.any():
+            done = np.flatnonzero(~go)
+            R[act[done]], K[:, act[done]], Q[:, act[done]] = Ra[done], Ka[:, done], X[6:, done]
+            if len(done) == len(act):
                 break
-            act, Ra, Ka, Qa, Wa, lam, cur = (act[go], Ra[go], Ka[:, go], Qa[:, go], Wa[go],
-                                             lam[go], cur[go])
+            keep = np.flatnonzero(go)
+            act, Ra, Ka, lam, cur = act[keep], Ra[keep], Ka[:, keep], lam[keep], cur[keep]
+            na = len(keep)
+            X = np.take(X, keep, axis=1, out=_planes(bufs[1], 10, na, n))
+            bufs.reverse()
+            Y = _planes(bufs[1], 10, na, n)
+            Y[5] = X[5]
+            T = _planes(tbuf, 2, na, n)
     else:
-        R[act], K[:, act], Q[:, act] = Ra, Ka, Qa
-    qx, qy, qz, r = Q
+        R[act], K[:, act], Q[:, act] = Ra, Ka, X[6:]
+    r, qx, qy, qz = Q
     kx, ky, h = K
     gn = np.sqrt((kx[:, None] * qx) ** 2 + (ky[:, None] * qy) ** 2 + 1.0)
     # Order kx <= ky: swap by a +90 deg turn about the normal (x' = y, y' = -x; the residuals,
@@ -804,7 +829,7 @@ def _seed_band(z: np.ndarray, fix: np.ndarray, fx: float, fy: float, cfg: PatchC
 
 def _sample_neighbourhoods(cloud: np.ndarray, scale: np.ndarray, seeds_rc_full: np.ndarray,
                            seed_pts: np.ndarray, fx: float, fy: float, cfg: PatchConfig,
-                           rng: np.random.Generator):
+                           rng: np.random.Generator, ws: Optional[_Workspace] = None):
     """Step 11: organized search in the filtered cloud ``cloud * scale[..., None]``. For each
     seed draw random pixels in the image window that bounds its r-ball, keep those whose points
     lie within r, at most n_f of them. Returns the neighbourhoods as x, y, z planes
@@ -813,36 +838,39 @@ def _sample_neighbourhoods(cloud: np.ndarray, scale: np.ndarray, seeds_rc_full: 
     ns, nf = len(seed_pts), cfg.max_neighbours
     k = nf * cfg.neighbour_draws
     r = cfg.patch_radius_m
-    z = seed_pts[:, 2]
-    hu = np.maximum(r * fx / z, 1.0)[:, None]
-    hv = np.maximum(r * fy / z, 1.0)[:, None]
-    du = (rng.random((ns, k)) * 2.0 - 1.0) * hu
-    dv = (rng.random((ns, k)) * 2.0 - 1.0) * hv
-    rr = np.clip(np.rint(seeds_rc_full[:, :1] + dv), 0, h - 1).astype(np.int64)
-    cc = np.clip(np.rint(seeds_rc_full[:, 1:] + du), 0, w - 1).astype(np.int64)
-    flat = rr * w + cc
+    # Column and row offsets of the draws as one (2, n_s, k) array (the same random stream as
+    # drawing the column offsets first, then the row offsets), scaled to the half-windows, then
+    # the drawn pixels' columns and rows (rint, clipped to the image: exact integers).
+    cr = rng.random(out=_array(ws, 'draws', (2, ns, k), np.float64))
+    cr *= 2.0
+    cr -= 1.0
+    cr *= np.maximum(np.array([[r * fx], [r * fy]]) / seed_pts[:, 2], 1.0)[:, :, None]
+    cr += seeds_rc_full.T[::-1, :, None]
+    np.rint(cr, out=cr)
+    np.clip(cr, 0.0, np.array([w - 1.0, h - 1.0])[:, None, None], out=cr)
+    flat = cr[1] * w
+    flat += cr[0]
+    flat = flat.astype(np.intp)
     s = np.take(scale.reshape(-1), flat).astype(np.float64)
-    flat *= 3
+    drawn = np.take(cloud.reshape(-1, 3), flat, axis=0,
+                    out=_array(ws, 'drawn', (ns, k, 3)))          # (float32 points)
     # The drawn points (float64, as x, y, z planes) and their squared distances to the seeds.
     pts = []
     d2 = np.zeros((ns, k))
     for c in (0, 2, 1):                         # (the order einsum sums x^2 + y^2 + z^2 in)
-        p = np.take(cloud.reshape(-1), flat + c if c else flat) * s
+        p = np.multiply(drawn[..., c], s)
         d = p - seed_pts[:, c, None]
         d *= d
         d2 += d
         pts.append(p)
     pts[1], pts[2] = pts[2], pts[1]
     ok = d2 <= r * r                                   # False for NaN
-    # The first n_f accepted draws of every row, in draw order: slot j holds the draw where the
-    # running count of accepted draws reaches j + 1 (one searchsorted over all rows, offset so
-    # that they stay sorted); slots beyond a row's count are masked and zeroed.
-    rank = np.cumsum(ok, axis=1)
-    base = np.arange(ns)[:, None] * (k + 1)
-    j = np.searchsorted((rank + base).reshape(-1), (base + np.arange(1, nf + 1)).reshape(-1))
-    np.minimum(j, ns * k - 1, out=j)
-    mask = np.arange(nf) < rank[:, -1:]
-    nb = np.stack([np.take(p, j).reshape(ns, nf) for p in pts])
+    # The first n_f accepted draws of every row, in draw order: a stable sort puts a row's
+    # accepted draws first; slots beyond its count are masked and zeroed.
+    j = np.argsort(~ok, axis=1, kind='stable')[:, :nf]
+    j += np.arange(0, ns * k, k)[:, None]
+    mask = np.take(ok, j)
+    nb = np.stack([np.take(p, j) for p in pts])
     np.copyto(nb, 0.0, where=~mask)
     return nb, mask
 
@@ -962,7 +990,7 @@ def find_patches(cloud: np.ndarray, fx: float, fy: float, gravity_cam: np.ndarra
     # Seed pixel of the downsampled image -> centre of its 2x2 block at full resolution (in the
     # band's rows).
     seeds_full = np.stack([2 * rs + 0.5, 2 * cs + 0.5], -1)
-    nb, mask = _sample_neighbourhoods(cloud, scale, seeds_full, seed_pts, fx, fy, cfg, rng)
+    nb, mask = _sample_neighbourhoods(cloud, scale, seeds_full, seed_pts, fx, fy, cfg, rng, ws)
     n_nb = mask.sum(1)
     enough = n_nb >= cfg.min_neighbours
     counts['neighbourhoods'] = int(enough.sum())
@@ -974,7 +1002,7 @@ def find_patches(cloud: np.ndarray, fx: float, fy: float, gravity_cam: np.ndarra
     D = np.empty((4, len(sel), cfg.max_neighbours))
     D[:3] = nb[:, enough]
     D[3] = mask[enough]
-    fit = _fit_paraboloids(D, mask[enough], n_nb[enough], -g, cfg.lm_iterations)
+    fit = _fit_paraboloids(D, mask[enough], n_nb[enough], -g, cfg.lm_iterations, ws)
     curv_ok, res_ok = patch_filters(fit.kx, fit.ky, fit.rms_euclidean, cfg)
     keep = curv_ok & res_ok
     counts['curvature'] = int(curv_ok.sum())
