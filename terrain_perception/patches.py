@@ -350,28 +350,29 @@ class IntegralMoments:
         # float32 products lose nothing that matters (relative 1e-7 of ~0.1 m coordinates), and
         # the integrals themselves are summed in float64.
         # Any point near the data will do: the mean of a 1/16 subsample (all points if that has
-        # none) saves a gather of every valid point.
+        # none) saves a gather of every valid point. (Summed in order, as a mean over the rows
+        # of an (n, 3) array is.)
         vs = valid[::4, ::4]
-        sub = np.stack([c[::4, ::4][vs] for c in (x, y, z)], -1)
-        sub = sub if len(sub) else np.stack([c[valid] for c in (x, y, z)], -1)
-        self.offset = sub.mean(axis=0, dtype=np.float64) if len(sub) else np.zeros(3)
-        invalid = ~valid
-        xyz = []
-        for k, (c, o) in enumerate(zip((x, y, z), self.offset)):
-            d = np.subtract(c, np.float32(o), out=_array(ws, f'ii_c{k}', (h, w)))
-            np.copyto(d, np.float32(0.0), where=invalid)
-            xyz.append(d)
-        x, y, z = xyz
+        sub = [c[::4, ::4][vs] for c in (x, y, z)] if vs.any() else [c[valid] for c in (x, y, z)]
+        self.offset = (np.array([np.cumsum(c, dtype=np.float64)[-1] for c in sub]) / len(sub[0])
+                       if len(sub[0]) else np.zeros(3))
+        # P: the centred points, 0 where invalid (z not finite).
+        P = cv2.merge([x, y, z], dst=_array(ws, 'ii_P', (h, w, 3)))
+        cv2.subtract(P, tuple(np.float32(self.offset).tolist()) + (0.0,), dst=P)
+        P[~valid] = 0.0
         # OpenCV's integral is one C pass per image, ~20x numpy's two cumsums. The squares are
         # exact in float64, as integral2 would form them, but integral2's second output costs
-        # more than this second image.
-        S = cv2.merge([valid.astype(np.float32), x, y, z], dst=_array(ws, 'ii_S', (h, w, 4)))
-        B = cv2.merge([x * y, x * z, y * z], dst=_array(ws, 'ii_B', (h, w, 3)))
-        Q = cv2.multiply(S, S, dtype=cv2.CV_64F, dst=_array(ws, 'ii_Q', (h, w, 4), np.float64))
-        # channels: [n, x, y, z], [n, xx, yy, zz], [xy, xz, yz]
-        self.ii = [cv2.integral(a, sdepth=cv2.CV_64F,
-                                sum=_array(ws, f'ii_{k}', (h + 1, w + 1, a.shape[2]), np.float64))
-                   for k, a in enumerate((S, Q, B))]
+        # more than this second image. The products are float32: x y, y z, z x.
+        Pr = _array(ws, 'ii_Pr', (h, w, 3))
+        cv2.mixChannels([P], [Pr], [0, 2, 1, 0, 2, 1])       # (y, z, x)
+        images = (valid.view(np.uint8), P,
+                  cv2.multiply(P, P, dtype=cv2.CV_64F, dst=_array(ws, 'ii_Q', (h, w, 3), np.float64)),
+                  cv2.multiply(P, Pr, dst=Pr))
+        # channels: [n] (int32), [x, y, z], [xx, yy, zz], [xy, yz, zx]
+        self.ii = [cv2.integral(a, sdepth=cv2.CV_32S if k == 0 else cv2.CV_64F,
+                                sum=_array(ws, f'ii_{k}', (h + 1, w + 1, 1 if k == 0 else 3),
+                                           np.int32 if k == 0 else np.float64))
+                   for k, a in enumerate(images)]
         self.shape = (h, w)
 
     def window_normals(self, rows: np.ndarray, cols: np.ndarray, half: np.ndarray,
@@ -390,13 +391,13 @@ class IntegralMoments:
         for ii in self.ii:
             v = np.take(ii.reshape(-1, ii.shape[-1]), corners, axis=0)
             s.append(v[0] + v[1] - v[2] - v[3])
-        s = np.concatenate(s, axis=1)
+        s = np.concatenate(s, axis=1, dtype=np.float64)
         n = s[:, 0]
-        m = s / np.maximum(n, 1.0)[:, None]   # n, x, y, z, n, xx, yy, zz, xy, xz, yz
+        m = s / np.maximum(n, 1.0)[:, None]   # n, x, y, z, xx, yy, zz, xy, yz, zx
         mx, my, mz = m[:, 1], m[:, 2], m[:, 3]
         normals = np.stack(_smallest_eigenvector_parts(
-            m[:, 5] - mx * mx, m[:, 8] - mx * my, m[:, 9] - mx * mz,
-            m[:, 6] - my * my, m[:, 10] - my * mz, m[:, 7] - mz * mz), -1)
+            m[:, 4] - mx * mx, m[:, 7] - mx * my, m[:, 9] - mx * mz,
+            m[:, 5] - my * my, m[:, 8] - my * mz, m[:, 6] - mz * mz), -1)
         normals[n < min_points] = np.nan
         return normals, n
 
