@@ -572,7 +572,6 @@ def _fit_paraboloids(D: np.ndarray, M: np.ndarray, cnt: np.ndarray, up: np.ndarr
     # point), on which every operation is one flat loop, and sums over a patch's points are
     # matmuls (one BLAS call per patch).
     npatch, n = M.shape
-    up = np.broadcast_to(np.asarray(up, dtype=np.float64), (npatch, 3))
     # D: x, y, z relative to the patch centroid, and the mask W (0/1). Padding points are
     # zeroed, so they sit at 0 in every frame below and only constant terms need W.
     d, W = D[:3], D[3]
@@ -583,11 +582,14 @@ def _fit_paraboloids(D: np.ndarray, M: np.ndarray, cnt: np.ndarray, up: np.ndarr
     cov = _gram(d) / cnt[:, None, None]
     n0 = np.stack(_smallest_eigenvector_parts(cov[:, 0, 0], cov[:, 0, 1], cov[:, 0, 2],
                                               cov[:, 1, 1], cov[:, 1, 2], cov[:, 2, 2]), -1)
-    n0[np.einsum('pi,pi->p', n0, up) < 0] *= -1.0
-    # PCA frame with z = normal
-    helper = np.where(np.abs(n0[:, :1]) < 0.9, np.array([1.0, 0, 0]), np.array([0, 1.0, 0]))
-    x0 = _cross(helper, n0)
-    x0 /= np.linalg.norm(x0, axis=1, keepdims=True)
+    n0[(n0 * np.asarray(up, dtype=np.float64)).sum(1) < 0] *= -1.0
+    # PCA frame with z = normal, x = helper x normal (normalised) with the helper e_x, or e_y
+    # when the normal is near e_x.
+    nx, ny, nz = n0.T
+    zero = np.zeros(npatch)
+    x0 = np.where((np.abs(nx) < 0.9)[:, None], np.stack([zero, -nz, ny], -1),
+                  np.stack([nz, zero, -nx], -1))
+    x0 /= np.sqrt(np.einsum('pi,pi->p', x0, x0))[:, None]
     y0 = _cross(n0, x0)
     Rp = np.stack([x0, y0, n0], axis=-1)
     # Normal equations of the quadric from one Gram matrix of [design rows; right-hand side].
@@ -599,25 +601,30 @@ def _fit_paraboloids(D: np.ndarray, M: np.ndarray, cnt: np.ndarray, up: np.ndarr
     np.multiply(qy, qy, out=A[2])
     A[5] = W
     G = _gram(A)
-    AtA = G[:, :6, :6].copy()
-    diag = AtA.reshape(-1, 36)[:, ::7]
+    diag = G.reshape(-1, 49)[:, 0:42:8]                     # (of the 6x6 block A^T A)
     diag += 1e-9 * np.maximum(diag.sum(1), 1e-12)[:, None]
-    sol = np.linalg.solve(AtA, G[:, :6, 6:])[..., 0]
+    sol = np.linalg.solve(G[:, :6, :6], G[:, :6, 6:])[..., 0]
     a, b, cc, dx, dy, f0 = sol.T
-    # Tilt the normal to the quadric's normal at the origin, then align x, y with the principal
-    # directions of its Hessian.
-    tilt_n = np.stack([-dx, -dy, np.ones_like(dx)], -1)
-    tilt_n /= np.linalg.norm(tilt_n, axis=1, keepdims=True)
-    axis = np.stack([-tilt_n[:, 1], tilt_n[:, 0], np.zeros(npatch)], -1)   # e_z x tilt_n
-    s = np.linalg.norm(axis, axis=1, keepdims=True)
-    ang = np.arctan2(s[:, 0], tilt_n[:, 2])
-    Rt = _expmap(np.where(s > 1e-12, axis / np.where(s > 0, s, 1.0), 0.0) * ang[:, None])
-    theta = 0.5 * np.arctan2(b, a - cc)  # principal direction of [[2a, b], [b, 2c]]
-    R = Rp @ Rt @ _rot_z(theta)
-    ct, st = np.cos(theta), np.sin(theta)
-    K = np.stack([2 * a * ct * ct + 2 * b * ct * st + 2 * cc * st * st,      # kx, ky, h
-                  2 * a * st * st - 2 * b * ct * st + 2 * cc * ct * ct,
-                  f0 * np.cos(ang)])
+    # Tilt the normal to the quadric's normal at the origin t = (-dx, -dy, 1) / |.| (Rt: the
+    # rotation about e_z x t that takes e_z to t, Rodrigues' formula written out), then align x,
+    # y with the principal directions of the quadric's Hessian [[2a, b], [b, 2c]]: its
+    # eigenvalues along them are a + c +- sqrt((a - c)^2 + b^2).
+    t = np.stack([-dx, -dy, np.ones(npatch)], -1)
+    t /= np.sqrt(1.0 + dx * dx + dy * dy)[:, None]
+    Rt = np.empty((npatch, 3, 3))
+    txy = t[:, :2]
+    np.multiply(txy[:, :, None], (-1.0 / (1.0 + t[:, 2]))[:, None, None] * txy[:, None, :],
+                out=Rt[:, :2, :2])
+    Rt[:, 0, 0] += 1.0
+    Rt[:, 1, 1] += 1.0
+    Rt[:, :2, 2] = txy
+    Rt[:, 2, :2] = -txy
+    Rt[:, 2, 2] = t[:, 2]
+    amc = a - cc
+    theta = 0.5 * np.arctan2(b, amc)
+    R = Rp @ (Rt @ _rot_z(theta))
+    rho = np.sqrt(amc * amc + b * b)
+    K = np.stack([(a + cc) + rho, (a + cc) - rho, f0 * t[:, 2]])    # kx, ky, h
 
     # LM on each patch until its own squared residual stops dropping by more than 0.1 % (or
     # `iterations`); converged patches leave the batch (their state is written back then), so
