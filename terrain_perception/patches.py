@@ -134,20 +134,20 @@ def _check_cloud(cloud: np.ndarray) -> np.ndarray:
 def _bilateral_scale(z: np.ndarray, cfg: PatchConfig,
                      ws: Optional[_Workspace] = None) -> np.ndarray:
     """Step 3 on the depth image ``z`` ``(H, W)`` as a per-pixel factor: filtered depth / raw
-    depth (NaN where invalid).
+    depth.
 
     Only the depth image (z) is filtered; multiplying a point by its factor moves it along its
     pixel ray to the new depth. Invalid (NaN or z <= 0) points are set to 0 m before filtering,
-    far outside the range sigma, so they do not bleed into valid ones."""
+    far outside the range sigma, so they do not bleed into valid ones. Their factor is then
+    (filtered depth >= 0) / 0, inf or NaN, and so is their scaled z (NaN, 0 or negative times
+    it): a scaled point is valid exactly when its z is finite, all that the later steps test."""
     z0 = _array(ws, 'z0', z.shape)
     cv2.threshold(z, 0.0, 0.0, cv2.THRESH_TOZERO, dst=z0)   # z if z > 0 else 0 (NaN kept)
     cv2.patchNaNs(z0, 0.0)
     zf = cv2.bilateralFilter(z0, cfg.bilateral_window_px, cfg.bilateral_sigma_depth_m,
                              cfg.bilateral_sigma_space_px, dst=_array(ws, 'scale', z.shape))
-    invalid = np.less_equal(z0, 0.0, out=_array(ws, 'invalid', z.shape, bool))
     with np.errstate(invalid='ignore', divide='ignore', over='ignore'):
         np.divide(zf, z0, out=zf)
-    np.copyto(zf, np.float32(np.nan), where=invalid)
     return zf
 
 
@@ -159,7 +159,11 @@ def bilateral_filter_cloud(cloud: np.ndarray, cfg: PatchConfig) -> np.ndarray:
     bleed into valid ones: they are set to 0 m before filtering, far outside the range sigma.
     """
     cloud = _check_cloud(cloud)
-    return cloud * _bilateral_scale(np.ascontiguousarray(cloud[..., 2]), cfg)[..., None]
+    z = np.ascontiguousarray(cloud[..., 2])
+    with np.errstate(invalid='ignore'):
+        out = cloud * _bilateral_scale(z, cfg)[..., None]
+        out[~(z > 0)] = np.nan
+    return out
 
 
 def _median_2x2(cloud: np.ndarray, scale: Optional[np.ndarray] = None,
@@ -194,7 +198,7 @@ def _median_2x2(cloud: np.ndarray, scale: Optional[np.ndarray] = None,
         out.append(m)
     # Blocks with an invalid point (NaN z): median of their valid points (NaN when none).
     zs = cv2.add(cols[2], cols[5], dst=lo)
-    part = np.isnan(cv2.add(zs[0::2], zs[1::2], dst=_array(ws, 'him', (h // 2, w // 2))))
+    part = ~np.isfinite(cv2.add(zs[0::2], zs[1::2], dst=_array(ws, 'him', (h // 2, w // 2))))
     if np.any(part):
         r, c = np.nonzero(part)
         i = 2 * r * (w // 2) + c
