@@ -29,6 +29,7 @@ z forward) in metres unless a docstring says otherwise.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 import threading
 from dataclasses import dataclass
@@ -383,12 +384,13 @@ class IntegralMoments:
                        min_points: int = 6):
         """Normals (unit, sign arbitrary) and point counts of the windows centred at
         ``(rows, cols)`` with half-size ``half`` [px] (clipped at the image border).
-        Windows with fewer than ``min_points`` valid points get a NaN normal."""
+        Windows with fewer than ``min_points`` valid points get a NaN normal. (Centres inside the
+        image, ``half >= 0``.)"""
         h, w = self.shape
-        r0 = np.clip(rows - half, 0, h)
-        r1 = np.clip(rows + half + 1, 0, h)
-        c0 = np.clip(cols - half, 0, w)
-        c1 = np.clip(cols + half + 1, 0, w)
+        r0 = np.maximum(rows - half, 0)          # (clipped at the border; half >= 0)
+        r1 = np.minimum(rows + half + 1, h)
+        c0 = np.maximum(cols - half, 0)
+        c1 = np.minimum(cols + half + 1, w)
         corners = np.stack([r1 * (w + 1) + c1, r0 * (w + 1) + c0,
                             r0 * (w + 1) + c1, r1 * (w + 1) + c0])
         s = []
@@ -438,7 +440,11 @@ def saliency(N: np.ndarray, Ns: np.ndarray, gravity_cam: np.ndarray, cfg: PatchC
     Returns ``(don, dong, keep)``: the DoN angle between N and N_s [rad], the DoNG angle between
     N and -gravity [rad] (NaN where a normal is missing), and the points passing both
     ``N . N_s >= cos(phi_d)`` and ``-N . g >= cos(phi_g)``."""
-    g = _unit_gravity(gravity_cam)
+    return _saliency(N, Ns, _unit_gravity(gravity_cam), cfg)
+
+
+def _saliency(N: np.ndarray, Ns: np.ndarray, g: np.ndarray, cfg: PatchConfig):
+    """:func:`saliency` given the unit gravity ``g``."""
     cdon = np.einsum('ij,ij->i', N, Ns)
     cdong = -N @ g
     with np.errstate(invalid='ignore'):
@@ -909,6 +915,13 @@ def _sample_neighbourhoods(cloud: np.ndarray, scale: np.ndarray, seeds_rc_full: 
     return nb, mask
 
 
+@functools.lru_cache(maxsize=8)
+def _seed_sequence(seed: int) -> np.random.SeedSequence:
+    """The SeedSequence ``default_rng(seed)`` builds (hashing the seed costs ~20-100 us a frame;
+    generating state from it does not change it)."""
+    return np.random.SeedSequence(seed)
+
+
 def find_patches(cloud: np.ndarray, fx: float, fy: float, gravity_cam: np.ndarray,
                  cfg: PatchConfig = PatchConfig(), rng: Optional[np.random.Generator] = None,
                  timing: bool = False) -> PatchSet:
@@ -934,8 +947,10 @@ def find_patches(cloud: np.ndarray, fx: float, fy: float, gravity_cam: np.ndarra
     if not (np.isfinite(fx) and np.isfinite(fy)) or fx <= 0 or fy <= 0:
         raise ValueError(f'focal lengths must be positive, got fx={fx}, fy={fy}')
     g = _unit_gravity(gravity_cam)
-    rng = rng if rng is not None else np.random.default_rng(cfg.random_seed)
+    rng = rng if rng is not None else np.random.Generator(np.random.PCG64(
+        _seed_sequence(cfg.random_seed)))                      # = default_rng(random_seed)
     fix = fixation_point(g, cfg)
+    g_sal = _unit_gravity(g)           # (the gravity saliency() would use: g normalised again)
     counts: Dict[str, int] = {}
     times: Dict[str, float] = {}
     # Stage I, on the rows that the later steps can read (see _seed_band)
@@ -969,7 +984,7 @@ def find_patches(cloud: np.ndarray, fx: float, fy: float, gravity_cam: np.ndarra
     flat = np.flatnonzero(in_roi)
     w2 = Dz.shape[1]
     finite = np.isfinite(Dz, out=ws.array('finite', Dz.shape, bool))
-    counts['valid_points'] = int(np.count_nonzero(finite, axis=1)[cand].sum())
+    counts['valid_points'] = int(np.count_nonzero(finite[cand]))
     counts['dtfp'] = int(len(flat))
     # Stage III + step 10. Filtering every candidate and then keeping a uniform random n_s of
     # the survivors has the same outcome distribution as visiting the candidates in uniformly
@@ -981,16 +996,17 @@ def find_patches(cloud: np.ndarray, fx: float, fy: float, gravity_cam: np.ndarra
     kept, n_kept, n_eval, n_don, n_dong = [], 0, 0, 0, 0
     if n_cand:
         # (points in the seed region are valid, so a plain min)
-        half = int(np.ceil(cfg.patch_radius_m * 0.5 * fx
-                           / np.min(Dz, where=in_roi, initial=np.inf))) + 1
-        rows_in, cols_in = np.flatnonzero(in_roi.any(1)), np.flatnonzero(in_roi.any(0))
-        r0, r1 = max(rows_in[0] - half, 0), min(rows_in[-1] + half + 1, Dz.shape[0])
+        half = int(np.ceil(cfg.patch_radius_m * 0.5 * fx / np.take(Dz, flat).min())) + 1
+        cols_in = np.flatnonzero(in_roi.any(0))                 # (flat is sorted: rows from it)
+        r0, r1 = max(flat[0] // w2 - half, 0), min(flat[-1] // w2 + half + 1, Dz.shape[0])
         c0, c1 = max(cols_in[0] - half, 0), min(cols_in[-1] + half + 1, w2)
         box = np.s_[r0:r1, c0:c1]
         moments = IntegralMoments._from_planes(Dx[box], Dy[box], Dz[box], ws)
     while n_eval < n_cand and n_kept < cfg.max_seeds:
         if n_eval == len(order):      # first draw used up: the rest in random order
-            rest = np.setdiff1d(np.arange(n_cand), order, assume_unique=True)
+            rest = np.ones(n_cand, bool)
+            rest[order] = False
+            rest = np.flatnonzero(rest)                         # (sorted, as setdiff1d's)
             order = np.concatenate([order, rng.permutation(rest)])
         rate = max(n_dong / n_eval, 0.05) if n_eval else 1.0
         size = int(1.5 * (cfg.max_seeds - n_kept) / rate) + 16
@@ -999,7 +1015,7 @@ def find_patches(cloud: np.ndarray, fx: float, fy: float, gravity_cam: np.ndarra
         rs, cs = np.divmod(sel, w2)
         N, Ns = _integral_normals(np.stack([Dx[rs, cs], Dy[rs, cs], Dz[rs, cs]], -1), rs - r0,
                                   cs - c0, 0.5 * fx, cfg.patch_radius_m, moments)
-        don, dong, ok = saliency(N, Ns, g, cfg)
+        don, dong, ok = _saliency(N, Ns, g_sal, cfg)
         n_don += int(np.count_nonzero(don <= np.radians(cfg.max_don_deg)))
         n_ok = int(np.count_nonzero(ok))
         n_dong += n_ok
