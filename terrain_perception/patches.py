@@ -100,12 +100,15 @@ class _Workspace:
         self._bufs: Dict[str, np.ndarray] = {}
 
     def array(self, name: str, shape, dtype=np.float32) -> np.ndarray:
-        dtype = np.dtype(dtype)
-        n = math.prod(shape) * dtype.itemsize
         buf = self._bufs.get(name)
-        if buf is None or buf.nbytes < n:
-            buf = self._bufs[name] = np.empty(n + n // 4, np.uint8)   # headroom for growth
-        return buf[:n].view(dtype).reshape(shape)
+        if buf is not None:
+            try:
+                return np.ndarray(shape, dtype, buf)    # (a frame asks for ~40 of them)
+            except TypeError:                           # buffer too small
+                pass
+        n = math.prod(shape) * np.dtype(dtype).itemsize
+        buf = self._bufs[name] = np.empty(n + n // 4, np.uint8)   # headroom for growth
+        return np.ndarray(shape, dtype, buf)
 
 
 _THREAD_LOCAL = threading.local()
@@ -317,11 +320,15 @@ def _smallest_eigenvector_parts(a00, a01, a02, a11, a12, a22):
     lam = q + 2.0 * p * np.cos(np.arccos(r) / 3.0 + 2.0 * np.pi / 3.0)
     d0, d1, d2 = a00 - lam, a11 - lam, a22 - lam
     # Cross products of the rows (d0 a01 a02), (a01 d1 a12), (a02 a12 d2) of C - lambda I; the
-    # longest one is the best-conditioned eigenvector estimate.
-    c = ((a01 * a12 - a02 * d1, a02 * a01 - d0 * a12, d0 * d1 - a01 * a01),     # r0 x r1
-         (a01 * d2 - a02 * a12, a02 * a02 - d0 * d2, d0 * a12 - a01 * a02),     # r0 x r2
-         (d1 * d2 - a12 * a12, a12 * a02 - a01 * d2, a01 * a12 - d1 * a02))    # r1 x r2
-    n0, n1, n2 = [(x * x + z * z) + y * y for x, y, z in c]    # (the order einsum sums in)
+    # longest one is the best-conditioned eigenvector estimate. Three of the nine components
+    # repeat (up to sign, exactly): r1 x r2 = (d1 d2 - a12^2, -c10, c00), r0 x r2 has z = -c01.
+    c00, c01, c02 = a01 * a12 - a02 * d1, a02 * a01 - d0 * a12, d0 * d1 - a01 * a01  # r0 x r1
+    c10, c11, c20 = a01 * d2 - a02 * a12, a02 * a02 - d0 * d2, d1 * d2 - a12 * a12
+    c = ((c00, c01, c02), (c10, c11, -c01), (c20, -c10, c00))
+    s00, s01, s10 = c00 * c00, c01 * c01, c10 * c10
+    n0 = (s00 + c02 * c02) + s01             # (x^2 + z^2) + y^2: the order einsum sums in
+    n1 = (s10 + s01) + c11 * c11
+    n2 = (c20 * c20 + s00) + s10
     use0 = (n0 >= n1) & (n0 >= n2)          # the first longest, as argmax would pick
     use1 = ~use0 & (n1 >= n2)
     vn = np.sqrt(np.where(use0, n0, np.where(use1, n1, n2)))
@@ -543,6 +550,9 @@ def _gram(A: np.ndarray) -> np.ndarray:
     return np.matmul(A.transpose(1, 0, 2), A.transpose(1, 2, 0))
 
 
+_K_STEP = np.array([0, 1, 5])          # the (kx, ky, h) entries of an LM step
+
+
 def _finish_residuals(X: np.ndarray, K: np.ndarray, tmp: np.ndarray) -> None:
     """Rows 0, 1 (``q_x^2 / 2``, ``q_y^2 / 2``) and 6 (the masked residuals
     ``(0.5 (kx q_x^2 + ky q_y^2) - (q_z - h)) W``) of the LM planes ``X`` (10, P, n) (see
@@ -705,7 +715,7 @@ def _fit_paraboloids(D: np.ndarray, M: np.ndarray, cnt: np.ndarray, up: np.ndarr
         step = np.linalg.solve(G[:, :6, :6], G[:, :6, 6:])[..., 0]   # (the step is minus this)
         E = _expmap(-step[:, 2:5])
         R_new = Ra @ E
-        K_new = Ka - step[:, [0, 1, 5]].T
+        K_new = Ka - step.T[_K_STEP]
         _to_frames(E, X[7:10], Y[7:10])                    # R_new^T (p - c) = E^T R^T (p - c)
         _finish_residuals(Y, K_new, T)
         new = np.einsum('pn,pn->p', Y[6], Y[6])
