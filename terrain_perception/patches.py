@@ -882,8 +882,9 @@ def _sample_neighbourhoods(cloud: np.ndarray, scale: np.ndarray, seeds_rc_full: 
                            rng: np.random.Generator, ws: Optional[_Workspace] = None):
     """Step 11: organized search in the filtered cloud ``cloud * scale[..., None]``. For each
     seed draw random pixels in the image window that bounds its r-ball, keep those whose points
-    lie within r, at most n_f of them. Returns the neighbourhoods as x, y, z planes
-    ``(3, n_s, n_f)`` (in draw order, unused slots 0) and their mask ``(n_s, n_f)``."""
+    lie within r, at most n_f of them. Returns the neighbourhoods as x, y, z planes and the
+    mask as 0/1 ``(4, n_s, n_f)`` (in draw order, unused slots 0; the planes
+    :func:`_fit_paraboloids` takes) and the mask ``(n_s, n_f)``."""
     h, w = cloud.shape[:2]
     ns, nf = len(seed_pts), cfg.max_neighbours
     k = nf * cfg.neighbour_draws
@@ -920,8 +921,11 @@ def _sample_neighbourhoods(cloud: np.ndarray, scale: np.ndarray, seeds_rc_full: 
     j = np.argsort(~ok, axis=1, kind='stable')[:, :nf]
     j += np.arange(0, ns * k, k)[:, None]
     mask = np.take(ok, j)
-    nb = np.stack([np.take(p, j) for p in pts])
-    np.copyto(nb, 0.0, where=~mask)
+    nb = np.empty((4, ns, nf))
+    for c, p in enumerate(pts):
+        np.take(p, j, out=nb[c])
+    np.copyto(nb[:3], 0.0, where=~mask)
+    nb[3] = mask
     return nb, mask
 
 
@@ -1005,8 +1009,9 @@ def find_patches(cloud: np.ndarray, fx: float, fy: float, gravity_cam: np.ndarra
     order = rng.choice(n_cand, min(n_cand, int(1.5 * cfg.max_seeds) + 16), replace=False)
     kept, n_kept, n_eval, n_don, n_dong = [], 0, 0, 0, 0
     if n_cand:
-        # (points in the seed region are valid, so a plain min)
-        half = int(np.ceil(cfg.patch_radius_m * 0.5 * fx / np.take(Dz, flat).min())) + 1
+        # (points in the seed region are valid, so a plain min; float32 as numpy's min is)
+        zmin = np.float32(cv2.minMaxLoc(Dz, in_roi.view(np.uint8))[0])
+        half = int(np.ceil(cfg.patch_radius_m * 0.5 * fx / zmin)) + 1
         cols_in = np.flatnonzero(in_roi.any(0))                 # (flat is sorted: rows from it)
         r0, r1 = max(flat[0] // w2 - half, 0), min(flat[-1] // w2 + half + 1, Dz.shape[0])
         c0, c1 = max(cols_in[0] - half, 0), min(cols_in[-1] + half + 1, w2)
@@ -1059,10 +1064,9 @@ def find_patches(cloud: np.ndarray, fx: float, fy: float, gravity_cam: np.ndarra
     if len(sel) == 0:
         times['stage4_ms'] = 1e3 * (clock() - t2)
         return _empty_patches(g, fix, counts, times)
-    D = np.empty((4, len(sel), cfg.max_neighbours))
-    D[:3] = nb[:, enough]
-    D[3] = mask[enough]
-    fit = _fit_paraboloids(D, mask[enough], n_nb[enough], -g, cfg.lm_iterations, ws)
+    if not enough.all():
+        nb, mask, n_nb = nb[:, enough], mask[enough], n_nb[enough]
+    fit = _fit_paraboloids(nb, mask, n_nb, -g, cfg.lm_iterations, ws)
     curv_ok, res_ok = patch_filters(fit.kx, fit.ky, fit.rms_euclidean, cfg)
     keep = curv_ok & res_ok
     counts['curvature'] = int(curv_ok.sum())
