@@ -400,11 +400,11 @@ class IntegralMoments:
         c1 = np.minimum(cols + half + 1, w)
         corners = np.stack([r1 * (w + 1) + c1, r0 * (w + 1) + c0,
                             r0 * (w + 1) + c1, r1 * (w + 1) + c0])
-        s = []
-        for ii in self.ii:
-            v = np.take(ii.reshape(-1, ii.shape[-1]), corners, axis=0)
-            s.append(v[0] + v[1] - v[2] - v[3])
-        s = np.concatenate(s, axis=1, dtype=np.float64)
+        # The corners of all images side by side (counts as float64: exact), then the box sums.
+        v = np.empty(corners.shape + (10,))
+        for ii, ch in zip(self.ii, (slice(0, 1), slice(1, 4), slice(4, 7), slice(7, 10))):
+            v[..., ch] = np.take(ii.reshape(-1, ii.shape[-1]), corners, axis=0)
+        s = v[0] + v[1] - v[2] - v[3]
         n = s[:, 0]
         m = s / np.maximum(n, 1.0)[:, None]   # n, x, y, z, xx, yy, zz, xy, yz, zx
         mx, my, mz = m[:, 1], m[:, 2], m[:, 3]
@@ -1028,8 +1028,8 @@ def find_patches(cloud: np.ndarray, fx: float, fy: float, gravity_cam: np.ndarra
         sel = flat[order[n_eval:n_eval + size]]
         n_eval += len(sel)
         rs, cs = np.divmod(sel, w2)
-        N, Ns = _integral_normals(np.stack([Dx[rs, cs], Dy[rs, cs], Dz[rs, cs]], -1), rs - r0,
-                                  cs - c0, 0.5 * fx, cfg.patch_radius_m, moments)
+        N, Ns = _integral_normals(np.stack([np.take(p, sel) for p in (Dx, Dy, Dz)], -1),
+                                  rs - r0, cs - c0, 0.5 * fx, cfg.patch_radius_m, moments)
         don, dong, ok = _saliency(N, Ns, g_sal, cfg)
         n_don += int(np.count_nonzero(don <= np.radians(cfg.max_don_deg)))
         n_ok = int(np.count_nonzero(ok))
@@ -1051,7 +1051,7 @@ def find_patches(cloud: np.ndarray, fx: float, fy: float, gravity_cam: np.ndarra
         times['stage4_ms'] = 0.0
         return _empty_patches(g, fix, counts, times)
     rs, cs = np.divmod(idx, w2)
-    seed_pts = np.stack([Dx[rs, cs], Dy[rs, cs], Dz[rs, cs]], -1).astype(np.float64)
+    seed_pts = np.stack([np.take(p, idx) for p in (Dx, Dy, Dz)], -1).astype(np.float64)
     # Seed pixel of the downsampled image -> centre of its 2x2 block at full resolution (in the
     # band's rows).
     seeds_full = np.stack([2 * rs + 0.5, 2 * cs + 0.5], -1)
