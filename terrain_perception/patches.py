@@ -377,9 +377,8 @@ class IntegralMoments:
         # more than this second image. The products are float32: x y, y z, z x.
         Pr = _array(ws, 'ii_Pr', (h, w, 3))
         cv2.mixChannels([P], [Pr], [0, 2, 1, 0, 2, 1])       # (y, z, x)
-        images = (valid.view(np.uint8), P,
-                  cv2.multiply(P, P, dtype=cv2.CV_64F, dst=_array(ws, 'ii_Q', (h, w, 3), np.float64)),
-                  cv2.multiply(P, Pr, dst=Pr))
+        Q = cv2.multiply(P, P, dtype=cv2.CV_64F, dst=_array(ws, 'ii_Q', (h, w, 3), np.float64))
+        images = (valid.view(np.uint8), P, Q, cv2.multiply(P, Pr, dst=Pr))
         # channels: [n] (int32), [x, y, z], [xx, yy, zz], [xy, yz, zx]
         self.ii = [cv2.integral(a, sdepth=cv2.CV_32S if k == 0 else cv2.CV_64F,
                                 sum=_array(ws, f'ii_{k}', (h + 1, w + 1, 1 if k == 0 else 3),
@@ -916,10 +915,11 @@ def _sample_neighbourhoods(cloud: np.ndarray, scale: np.ndarray, seeds_rc_full: 
         pts.append(p)
     pts[1], pts[2] = pts[2], pts[1]
     ok = d2 <= r * r                                   # False for NaN
-    # The first n_f accepted draws of every row, in draw order: a stable sort puts a row's
-    # accepted draws first; slots beyond its count are masked and zeroed.
-    j = np.argsort(~ok, axis=1, kind='stable')[:, :nf]
-    j += np.arange(0, ns * k, k)[:, None]
+    # The first n_f accepted draws of every row, in draw order: one stable sort of the flat
+    # keys 2 row + rejected puts every row's draws in its own k slots, accepted ones first;
+    # slots beyond a row's count are masked and zeroed.
+    key = np.arange(0, 2 * ns, 2, dtype=np.int16 if 2 * ns < 2 ** 15 else np.int64)[:, None] + ~ok
+    j = np.argsort(key.reshape(-1), kind='stable').reshape(ns, k)[:, :nf]
     mask = np.take(ok, j)
     nb = np.empty((4, ns, nf))
     for c, p in enumerate(pts):
