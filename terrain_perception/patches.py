@@ -872,12 +872,12 @@ def _seed_band(z: np.ndarray, fix: np.ndarray, fx: float, fy: float, cfg: PatchC
     depth a seed there can have), plus k rows so the filter is exact where it is read. Rows the
     robot's camera sees far beyond the fixation point are thus never filtered."""
     H = z.shape[0]
+    # Depth range of each row pair (as one row of the (H/2, 2W) view).
+    pairs = z.reshape(H // 2, -1)
     with np.errstate(invalid='ignore'):
-        zmin = np.fmin.reduce(z, axis=1, initial=np.inf)   # NaN (invalid) ignored
-        zmax = np.fmax.reduce(z, axis=1, initial=0.0)      # (z <= 0 is invalid as well)
+        pmin = np.fmin.reduce(pairs, axis=1, initial=np.inf)   # NaN (invalid) ignored
+        pmax = np.fmax.reduce(pairs, axis=1, initial=0.0)      # (z <= 0 is invalid as well)
     # Downsampled row i reads full rows 2i - k .. 2i + 1 + k: row pairs i - m .. i + m.
-    pmin = np.minimum(zmin[0::2], zmin[1::2])
-    pmax = np.maximum(zmax[0::2], zmax[1::2])
     wmin, wmax = pmin.copy(), pmax.copy()
     k = cfg.bilateral_window_px // 2
     for j in range(1, (k + 1) // 2 + 1):
