@@ -275,7 +275,11 @@ def gravity_in_camera(q_world_imu: np.ndarray, R_imu_camera: np.ndarray) -> np.n
 
 def fixation_point(gravity_cam: np.ndarray, cfg: PatchConfig) -> np.ndarray:
     """Step 5: ``f = l_d g + l_f ([1 0 0]^T x g)`` in the camera frame [m]."""
-    g = _unit_gravity(gravity_cam)
+    return _fixation(_unit_gravity(gravity_cam), cfg)
+
+
+def _fixation(g: np.ndarray, cfg: PatchConfig) -> np.ndarray:
+    """:func:`fixation_point` given the unit gravity ``g``."""
     # [1 0 0]^T x g = (0, -g_z, g_y), written out (np.cross costs ~60 us)
     return cfg.fixation_down_m * g + cfg.fixation_forward_m * np.array([0.0, -g[2], g[1]])
 
@@ -984,8 +988,8 @@ def find_patches(cloud: np.ndarray, fx: float, fy: float, gravity_cam: np.ndarra
     g = _unit_gravity(gravity_cam)
     rng = rng if rng is not None else np.random.Generator(np.random.PCG64(
         _seed_sequence(cfg.random_seed)))                      # = default_rng(random_seed)
-    fix = fixation_point(g, cfg)
-    g_sal = _unit_gravity(g)           # (the gravity saliency() would use: g normalised again)
+    g_sal = _unit_gravity(g)     # (g normalised again: what fixation_point and saliency use)
+    fix = _fixation(g_sal, cfg)
     counts: Dict[str, int] = {}
     times: Dict[str, float] = {}
     # Stage I, on the rows that the later steps can read (see _seed_band)
