@@ -135,8 +135,8 @@ def _check_cloud(cloud: np.ndarray) -> np.ndarray:
     return np.asarray(cloud, dtype=np.float32)
 
 
-def _bilateral_scale(z: np.ndarray, cfg: PatchConfig,
-                     ws: Optional[_Workspace] = None) -> np.ndarray:
+def _bilateral_scale(z: np.ndarray, cfg: PatchConfig, ws: Optional[_Workspace] = None,
+                     all_valid: bool = False) -> np.ndarray:
     """Step 3 on the depth image ``z`` ``(H, W)`` as a per-pixel factor: filtered depth / raw
     depth.
 
@@ -144,10 +144,14 @@ def _bilateral_scale(z: np.ndarray, cfg: PatchConfig,
     pixel ray to the new depth. Invalid (NaN or z <= 0) points are set to 0 m before filtering,
     far outside the range sigma, so they do not bleed into valid ones. Their factor is then
     (filtered depth >= 0) / 0, inf or NaN, and so is their scaled z (NaN, 0 or negative times
-    it): a scaled point is valid exactly when its z is finite, all that the later steps test."""
-    z0 = _array(ws, 'z0', z.shape)
-    cv2.threshold(z, 0.0, 0.0, cv2.THRESH_TOZERO, dst=z0)   # z if z > 0 else 0 (NaN kept)
-    cv2.patchNaNs(z0, 0.0)
+    it): a scaled point is valid exactly when its z is finite, all that the later steps test.
+    ``all_valid``: the caller knows every depth to be valid (then ``z`` is the filter's input)."""
+    if all_valid:
+        z0 = z
+    else:
+        z0 = _array(ws, 'z0', z.shape)
+        cv2.threshold(z, 0.0, 0.0, cv2.THRESH_TOZERO, dst=z0)   # z if z > 0 else 0 (NaN kept)
+        cv2.patchNaNs(z0, 0.0)
     zf = cv2.bilateralFilter(z0, cfg.bilateral_window_px, cfg.bilateral_sigma_depth_m,
                              cfg.bilateral_sigma_space_px, dst=_array(ws, 'scale', z.shape))
     with np.errstate(invalid='ignore', divide='ignore', over='ignore'):
@@ -171,7 +175,7 @@ def bilateral_filter_cloud(cloud: np.ndarray, cfg: PatchConfig) -> np.ndarray:
 
 
 def _median_2x2(cloud: np.ndarray, scale: Optional[np.ndarray] = None,
-                ws: Optional[_Workspace] = None):
+                ws: Optional[_Workspace] = None, finite_z: bool = False):
     """2x2 block medians of the points ``cloud * scale[..., None]`` (``(h, w, 3)``, h and w
     even; ``scale=None``: of ``cloud`` itself) as x, y, z planes ``(h/2, w/2)``; a point is
     valid when its z is finite, a block's median is over its valid points (NaN if none).
@@ -179,7 +183,8 @@ def _median_2x2(cloud: np.ndarray, scale: Optional[np.ndarray] = None,
     Median of 4 = (max of the pair minima + min of the pair maxima) / 2 for any pairing; pairing
     the columns lets one ``cv2.split`` of the (h, w/2, 6) view separate even and odd columns of
     all three coordinates, and every later operation is an OpenCV call on contiguous or
-    row-strided planes."""
+    row-strided planes. ``finite_z``: the caller knows every point's z to be finite (then no
+    block needs the median of its valid points only)."""
     h, w = cloud.shape[:2]
     cols = cv2.split(np.ascontiguousarray(cloud).reshape(h, w // 2, 6),
                      [_array(ws, f'col{k}', (h, w // 2)) for k in range(6)])
@@ -200,6 +205,8 @@ def _median_2x2(cloud: np.ndarray, scale: Optional[np.ndarray] = None,
         m += cv2.min(hi[0::2], hi[1::2], dst=_array(ws, 'him', (h // 2, w // 2)))
         m *= np.float32(0.5)
         out.append(m)
+    if finite_z:
+        return out
     # Blocks with an invalid point (NaN z): median of their valid points (NaN when none).
     zs = cv2.add(cols[2], cols[5], dst=lo)
     part = ~np.isfinite(cv2.add(zs[0::2], zs[1::2], dst=_array(ws, 'him', (h // 2, w // 2))))
@@ -245,13 +252,15 @@ def median_downsample_2x2(cloud: np.ndarray) -> np.ndarray:
 
 
 def _filter_and_downsample(cloud: np.ndarray, z: np.ndarray, cfg: PatchConfig,
-                           ws: Optional[_Workspace] = None):
+                           ws: Optional[_Workspace] = None, all_valid: bool = False):
     """Steps 3-4 without materialising the filtered full-resolution cloud: returns ``D`` as x,
     y, z planes and the step-3 factor (filtered cloud = ``cloud * scale[..., None]``, needed
-    only at step 11). ``z``: the cloud's depth plane, contiguous."""
-    scale = _bilateral_scale(z, cfg, ws)
+    only at step 11). ``z``: the cloud's depth plane, contiguous. ``all_valid``: every depth is
+    known to be finite and > 0 with a max / min ratio below 1e30; a filtered depth, a convex
+    combination of its neighbours, then stays in that range too, so every scaled z is finite."""
+    scale = _bilateral_scale(z, cfg, ws, all_valid)
     h, w = cloud.shape[0] // 2 * 2, cloud.shape[1] // 2 * 2
-    return _median_2x2(cloud[:h, :w], scale[:h, :w], ws), scale
+    return _median_2x2(cloud[:h, :w], scale[:h, :w], ws, all_valid), scale
 
 
 # --------------------------------------------------------------------------------------------
@@ -863,10 +872,12 @@ def _empty_patches(gravity, fixation, counts, timings) -> PatchSet:
                     np.zeros(0, np.int64), gravity, fixation, counts, timings)
 
 
-def _seed_band(z: np.ndarray, fix: np.ndarray, fx: float, fy: float, cfg: PatchConfig):
+def _seed_band(z: np.ndarray, fix: np.ndarray, fx: float, fy: float, cfg: PatchConfig,
+               depth_range: bool = False):
     """Of the depth image ``z`` (even height), the full-resolution rows ``[a, b)`` (even) that
     steps 3-11 can read, and which of the downsampled rows in them can hold a seed; ``None``
-    when no row can.
+    when no row can. ``depth_range``: also the least and the largest depth in the rows (NaN
+    ignored, depths <= 0 included).
 
     Exact, not a heuristic: a filtered depth is a convex combination of the valid raw depths in
     its bilateral window and a 2x2 median lies between its block's values, so downsampled row
@@ -898,6 +909,8 @@ def _seed_band(z: np.ndarray, fix: np.ndarray, fx: float, fy: float, cfg: PatchC
     margin = np.ceil(cfg.patch_radius_m * max(fx, fy) / zlo).astype(np.int64) + 2
     a = max(int((2 * i - margin).min()) - k, 0) // 2 * 2
     b = min(int((2 * i + 2 + margin).max()) + k + 1, H) // 2 * 2
+    if depth_range:
+        return a, b, cand[a // 2:b // 2], pmin[a // 2:b // 2].min(), pmax[a // 2:b // 2].max()
     return a, b, cand[a // 2:b // 2]
 
 
@@ -997,14 +1010,16 @@ def find_patches(cloud: np.ndarray, fx: float, fy: float, gravity_cam: np.ndarra
     cloud = _check_cloud(cloud)
     h_even = cloud.shape[0] // 2 * 2
     z = cv2.extractChannel(cloud[:h_even], 2, dst=ws.array('z', (h_even, cloud.shape[1])))
-    band = _seed_band(z, fix, fx, fy, cfg)
+    band = _seed_band(z, fix, fx, fy, cfg, depth_range=True)
     if band is None:
         counts['valid_points'] = counts['dtfp'] = counts['seeds'] = 0
         times.update(stage1_ms=1e3 * (clock() - t0), stage23_ms=0.0, stage4_ms=0.0)
         return _empty_patches(g, fix, counts, times)
-    a, b, cand = band
-    cloud = cloud[a:b]
-    (Dx, Dy, Dz), scale = _filter_and_downsample(cloud, z[a:b], cfg, ws)
+    a, b, cand, zlo, zhi = band
+    cloud, zb = cloud[a:b], z[a:b]
+    # (Most frames have invalid depths only in rows far beyond the band.)
+    all_valid = 0.0 < zlo and float(zhi) < 1e30 * float(zlo) and not np.isnan(zb).any()
+    (Dx, Dy, Dz), scale = _filter_and_downsample(cloud, zb, cfg, ws, all_valid)
     t1 = clock()
     times['stage1_ms'] = 1e3 * (t1 - t0)
     # Stage II: seeds within R of the fixation point
