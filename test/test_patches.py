@@ -237,6 +237,37 @@ def test_median_downsample_2x2_with_invalid_points():
     assert np.all(np.isnan(out[1, 1]))
 
 
+def test_stage_one_shortcuts_and_fit_kernels_match_the_general_paths():
+    """The shortcuts find_patches takes must not change results: the filter and median of a
+    band known to hold only valid depths, the compiled rotation-vector kernels, the direct solve
+    (which still raises on a singular matrix); invalid depths (NaN, 0, negative) stay invalid."""
+    from terrain_perception import patches as pm
+    from scipy.spatial.transform import Rotation
+    rng = np.random.default_rng(3)
+    cfg = PatchConfig(bilateral_sigma_depth_m=0.01)
+    cloud = np.zeros((40, 64, 3), np.float32)
+    cloud[..., 2] = 0.3 + 0.02 * rng.random((40, 64))
+    cloud[..., 0] = rng.normal(0, 0.1, (40, 64))
+    cloud[..., 1] = rng.normal(0, 0.1, (40, 64))
+    z = np.ascontiguousarray(cloud[..., 2])
+    (a, sa), (b, sb) = [pm._filter_and_downsample(cloud, z, cfg, None, v) for v in (False, True)]
+    assert all(np.array_equal(p, q) for p, q in zip(a, b)) and np.array_equal(sa, sb)
+    holes = cloud.copy()
+    holes[3, 5, 2], holes[7, 9, 2], holes[11, 13] = 0.0, -0.3, np.nan
+    D = median_downsample_2x2(bilateral_filter_cloud(holes, cfg))
+    assert np.isnan(bilateral_filter_cloud(holes, cfg)[[3, 7, 11], [5, 9, 13]]).all()
+    assert np.isfinite(D).all()                     # each block still has valid points
+    w = rng.normal(0, 0.01, (20, 3))
+    w[0] = 0.0
+    np.testing.assert_array_equal(pm._expmap(w), Rotation.from_rotvec(w).as_matrix())
+    H = rng.normal(size=(5, 6, 6))
+    H = H @ H.transpose(0, 2, 1) + np.eye(6)
+    g = rng.normal(size=(5, 6, 1))
+    np.testing.assert_array_equal(pm._solve(H, g), np.linalg.solve(H, g))
+    with pytest.raises(np.linalg.LinAlgError):
+        pm._solve(np.zeros((2, 6, 6)), g[:2])
+
+
 def test_integral_normals_and_saliency_on_a_hand_made_scene():
     """Flat ground, a 60 deg ramp and a step: DoNG drops the ramp, DoN drops the step edge."""
     cam = PinholeCamera(320, 240, 262.5, 262.5, 159.5, 119.5)
