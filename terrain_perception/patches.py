@@ -384,7 +384,8 @@ class IntegralMoments:
         # P: the centred points, 0 where invalid (z not finite).
         P = cv2.merge([x, y, z], dst=_array(ws, 'ii_P', (h, w, 3)))
         cv2.subtract(P, tuple(np.float32(self.offset).tolist()) + (0.0,), dst=P)
-        P[~valid] = 0.0
+        if not valid.all():
+            P[~valid] = 0.0
         # OpenCV's integral is one C pass per image, ~20x numpy's two cumsums. The squares are
         # exact in float64, as integral2 would form them, but integral2's second output costs
         # more than this second image. The products are float32: x y, y z, z x.
@@ -1037,8 +1038,11 @@ def find_patches(cloud: np.ndarray, fx: float, fy: float, gravity_cam: np.ndarra
     # The seed candidates as flat indices; rows and columns only where needed.
     flat = np.flatnonzero(in_roi)
     w2 = Dz.shape[1]
-    finite = np.isfinite(Dz, out=ws.array('finite', Dz.shape, bool))
-    counts['valid_points'] = int(np.count_nonzero(finite[cand]))
+    if all_valid:                                   # (then every median is finite)
+        counts['valid_points'] = int(np.count_nonzero(cand)) * w2
+    else:
+        finite = np.isfinite(Dz, out=ws.array('finite', Dz.shape, bool))
+        counts['valid_points'] = int(np.count_nonzero(finite[cand]))
     counts['dtfp'] = int(len(flat))
     # Stage III + step 10. Filtering every candidate and then keeping a uniform random n_s of
     # the survivors has the same outcome distribution as visiting the candidates in uniformly
