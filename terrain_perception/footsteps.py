@@ -118,7 +118,7 @@ class PlannerConfig:
         'the rearmost other foot, both measured from their nominal places [m] (0 = no limit)',
         0.0, 10.0)
     min_stance_length: float = param(
-        0.0, 'shortest distance along the walking direction between a front foot and the hind '
+        0.5, 'shortest distance along the walking direction between a front foot and the hind '
         'foot on its side, as a share of the nominal one (the hip spacing): a hind leg that '
         'catches up with a blocked front leg leaves a support polygon too short to balance on '
         '(0 = no limit) [-]', 0.0, 1.0)
