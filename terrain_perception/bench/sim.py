@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import argparse
 import time
+from typing import Optional
 
 import numpy as np
 
@@ -32,6 +33,18 @@ DT = 1.0 / 500.0
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('--seed', type=int, default=0, help='rocks-6cm course seed')
+    parser.add_argument('--rocks-seeds', type=int, default=0, metavar='N',
+                        help='also walk rocks-6cm on seeds 0..N-1 with ground-truth footsteps, '
+                        'with the default planner and controller and with the baseline '
+                        f'{ROCKS_BASELINE_NAME!r}; reports crossings, falls and advance')
+    parser.add_argument('--rocks-only', action='store_true',
+                        help='only the rocks walks (no real-time factor and flat walks)')
+
+
+# The multi-seed rocks walk's baseline: the defaults before the fourth session, when hind feet
+# could close up on a blocked front foot and the body stayed level.
+ROCKS_BASELINE_NAME = 'level body, no stance-length limit'
+ROCKS_BASELINE = ({'min_stance_length': 0.0}, {'body_tilt_gain': 0.0})
 
 
 def _rtf(course, robot: str, scale: float, sim_s: float) -> dict:
@@ -75,7 +88,12 @@ def _flat_walk(robot: str, distance_m: float, gait: str = 'walk') -> dict:
             'rtf_walk': res.sim_time_s / wall}
 
 
-def _rocks_walk(course, start_x: float, goal_x: float, seed: int, sensing: bool = True) -> dict:
+def _rocks_walk(course, start_x: float, goal_x: float, seed: int, sensing: bool = True,
+                planner_kw: Optional[dict] = None, walking_kw: Optional[dict] = None) -> dict:
+    """LittleDog walks ``course`` from ``start_x`` towards ``goal_x`` on footsteps planned on
+    the true terrain (receding horizon, every plan dry-run through the controller's checks).
+    ``planner_kw``/``walking_kw`` override :class:`PlannerConfig`/:class:`WalkingConfig`
+    defaults."""
     from terrain_perception.footsteps import PlannerConfig, FootstepPlanner
     from terrain_perception.sim.session import SimSession, SimSessionConfig
     from terrain_perception.sim.walk import WalkRunner
@@ -86,14 +104,15 @@ def _rocks_walk(course, start_x: float, goal_x: float, seed: int, sensing: bool 
         client, robot, world = session.client, session.robot, session.world
         height = world.height_at
         from terrain_perception.controller import WalkingConfig, check_footsteps
-        cfg = WalkingConfig(plan_timeout_s=1e6) if sensing else WalkingConfig(
-            plan_timeout_s=1e6, contact_force_n=0.0, attitude_gain=0.0)
+        cfg = WalkingConfig(plan_timeout_s=1e6, **(walking_kw or {})) if sensing else \
+            WalkingConfig(plan_timeout_s=1e6, contact_force_n=0.0, attitude_gain=0.0,
+                          **(walking_kw or {}))
         runner = WalkRunner(client, robot, cfg, dt_s=DT, height=height,
                             ground_id=(world.floor_id, world.terrain_id))
         # Walk gait only: the controller's trot is Shao's quasi-static one (COG on the
         # diagonal), kept out of this measurement.
         planner = FootstepPlanner(m, PlannerConfig(cost_source='kolter', trot_threshold_m=0.0,
-                                                   horizon_steps=4))
+                                                   horizon_steps=4, **(planner_kw or {})))
         bad = planner.set_map(course)
         if bad is not None:
             raise ValueError(f'planner refused the course: {bad.status_text}')
@@ -151,10 +170,43 @@ def _rocks_walk(course, start_x: float, goal_x: float, seed: int, sensing: bool 
             'rtf_walk': res.sim_time_s / wall}
 
 
+def _rocks_seeds(n: int, start_x: float, goal_x: float) -> dict:
+    """The ground-truth-footstep rocks walk on seeds 0..n-1, defaults against the baseline."""
+    from terrain_perception.terrain import make_course
+    rows = {'default': [], 'baseline': []}
+    for seed in range(n):
+        course = make_course('rocks-6cm', seed, 0.005)
+        rows['default'].append(_rocks_walk(course, start_x, goal_x, seed))
+        rows['baseline'].append(_rocks_walk(course, start_x, goal_x, seed,
+                                            planner_kw=ROCKS_BASELINE[0],
+                                            walking_kw=ROCKS_BASELINE[1]))
+    print(f'\nrocks-6cm, ground-truth footsteps, x {start_x} -> {goal_x} m, seeds 0-{n - 1} '
+          f'(F = fell, X = crossed); baseline: {ROCKS_BASELINE_NAME} '
+          f'(planner {ROCKS_BASELINE[0]}, controller {ROCKS_BASELINE[1]})')
+    summary = {}
+    for name, rs in rows.items():
+        marks = ' '.join(f'{r["advanced_m"]:.2f}' + ('F' if r['fell'] else '')
+                         + ('X' if r['reached'] and not r['fell'] else '') for r in rs)
+        summary[name] = {
+            'crossed': int(sum(r['reached'] and not r['fell'] for r in rs)),
+            'falls': int(sum(r['fell'] for r in rs)),
+            'advanced_m_mean': float(np.mean([r['advanced_m'] for r in rs])),
+            'seeds': n}
+        print(f'{name:<9} {marks}  | crossed {summary[name]["crossed"]}/{n}, falls '
+              f'{summary[name]["falls"]}, mean advance {summary[name]["advanced_m_mean"]:.2f} m')
+    return {'rows': rows, 'summary': summary, 'baseline': ROCKS_BASELINE_NAME}
+
+
 def run(args: argparse.Namespace) -> dict:
     from terrain_perception.terrain import make_course
     quick = bool(getattr(args, 'quick', False))
     seed = int(getattr(args, 'seed', 0))
+    n_rocks = int(getattr(args, 'rocks_seeds', 0) or 0)
+    if getattr(args, 'rocks_only', False):
+        if n_rocks <= 0:
+            raise ValueError('--rocks-only needs --rocks-seeds N (N >= 1)')
+        seeds = _rocks_seeds(n_rocks, 0.4, 2.4)
+        return {'rocks6_seeds': seeds['summary'], 'rocks6_seed_rows': seeds['rows']}
     course = make_course('rocks-6cm', seed, 0.005)
 
     rtf_rows = []
@@ -214,4 +266,7 @@ def run(args: argparse.Namespace) -> dict:
         'rocks6_open_loop_advanced_m': rocks_blind['advanced_m'],
         'quick': quick,
     }
+    if n_rocks > 0:
+        seeds = _rocks_seeds(n_rocks, 0.4, 2.4)
+        out.update(rocks6_seeds=seeds['summary'], rocks6_seed_rows=seeds['rows'])
     return out
