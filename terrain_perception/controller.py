@@ -106,7 +106,7 @@ class WalkingConfig:
                                  'far below its foothold looking for the ground [m]', 0.0, 0.2)
     probe_speed_m_s: float = param(0.03, 'Descent speed while probing for the ground [m/s]',
                                    0.001, 1.0)
-    body_tilt_gain: float = param(0.7, 'Share of the slope of the stance feet\'s plane (front '
+    body_tilt_gain: float = param(0.0, 'Share of the slope of the stance feet\'s plane (front '
                                   'vs hind, left vs right) by which the body pitches and rolls '
                                   'with it, so legs on higher ground are not folded while the '
                                   'others stretch (0 = level body) [-]', 0.0, 1.0)
