@@ -104,9 +104,10 @@ def _rocks_walk(course, start_x: float, goal_x: float, seed: int, sensing: bool 
         client, robot, world = session.client, session.robot, session.world
         height = world.height_at
         from terrain_perception.controller import WalkingConfig, check_footsteps
-        cfg = WalkingConfig(plan_timeout_s=1e6, **(walking_kw or {})) if sensing else \
-            WalkingConfig(plan_timeout_s=1e6, contact_force_n=0.0, attitude_gain=0.0,
-                          **(walking_kw or {}))
+        wkw = {'plan_timeout_s': 1e6, **(walking_kw or {})}
+        if not sensing:
+            wkw.update(contact_force_n=0.0, attitude_gain=0.0)
+        cfg = WalkingConfig(**wkw)
         runner = WalkRunner(client, robot, cfg, dt_s=DT, height=height,
                             ground_id=(world.floor_id, world.terrain_id))
         # Walk gait only: the controller's trot is Shao's quasi-static one (COG on the
@@ -185,16 +186,17 @@ def _rocks_seeds(n: int, start_x: float, goal_x: float) -> dict:
           f'(planner {ROCKS_BASELINE[0]}, controller {ROCKS_BASELINE[1]})')
     summary = {}
     for name, rs in rows.items():
+        crossed = [r['reached'] and not r['fell'] for r in rs]
         marks = ' '.join(f'{r["advanced_m"]:.2f}' + ('F' if r['fell'] else '')
-                         + ('X' if r['reached'] and not r['fell'] else '') for r in rs)
+                         + ('X' if c else '') for r, c in zip(rs, crossed))
         summary[name] = {
-            'crossed': int(sum(r['reached'] and not r['fell'] for r in rs)),
+            'crossed': int(sum(crossed)),
             'falls': int(sum(r['fell'] for r in rs)),
             'advanced_m_mean': float(np.mean([r['advanced_m'] for r in rs])),
             'seeds': n}
         print(f'{name:<9} {marks}  | crossed {summary[name]["crossed"]}/{n}, falls '
               f'{summary[name]["falls"]}, mean advance {summary[name]["advanced_m_mean"]:.2f} m')
-    return {'rows': rows, 'summary': summary, 'baseline': ROCKS_BASELINE_NAME}
+    return {'rocks6_seeds': summary, 'rocks6_seed_rows': rows}
 
 
 def run(args: argparse.Namespace) -> dict:
@@ -205,8 +207,7 @@ def run(args: argparse.Namespace) -> dict:
     if getattr(args, 'rocks_only', False):
         if n_rocks <= 0:
             raise ValueError('--rocks-only needs --rocks-seeds N (N >= 1)')
-        seeds = _rocks_seeds(n_rocks, 0.4, 2.4)
-        return {'rocks6_seeds': seeds['summary'], 'rocks6_seed_rows': seeds['rows']}
+        return _rocks_seeds(n_rocks, 0.4, 2.4)
     course = make_course('rocks-6cm', seed, 0.005)
 
     rtf_rows = []
@@ -267,6 +268,5 @@ def run(args: argparse.Namespace) -> dict:
         'quick': quick,
     }
     if n_rocks > 0:
-        seeds = _rocks_seeds(n_rocks, 0.4, 2.4)
-        out.update(rocks6_seeds=seeds['summary'], rocks6_seed_rows=seeds['rows'])
+        out.update(_rocks_seeds(n_rocks, 0.4, 2.4))
     return out
