@@ -18,7 +18,7 @@ setup(
         ('share/' + package_name, ['package.xml']),
         ('share/' + package_name + '/config', glob('config/*.yaml') + glob('config/*.xml')),
     ],
-    install_requires=['numpy', 'scipy', 'opencv-python-headless', 'open3d', 'pybullet',
+    install_requires=['numpy', 'scipy', 'numba', 'opencv-python-headless', 'open3d', 'pybullet',
                       'rosbags', 'PyYAML'],
     zip_safe=False,
     maintainer='terrain_perception maintainers',
