@@ -30,7 +30,9 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import logging
 import math
+import os
 import threading
 from dataclasses import dataclass
 from typing import Dict, Optional
@@ -40,6 +42,8 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from terrain_perception.config import param
+
+_LOG = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -123,6 +127,67 @@ def _workspace() -> _Workspace:
 
 def _array(ws: Optional[_Workspace], name: str, shape, dtype=np.float32) -> np.ndarray:
     return ws.array(name, shape, dtype) if ws is not None else np.empty(shape, dtype)
+
+
+# --------------------------------------------------------------------------------------------
+# Compiled kernels (numba) or the numpy reference steps
+# --------------------------------------------------------------------------------------------
+#
+# find_patches (and fit_paraboloids) run the 2x2 median, the neighbourhood search and the
+# paraboloid fit as compiled kernels (terrain_perception._patch_kernels) when numba imports;
+# the numpy steps below stay the reference they are tested against (median and search bitwise
+# identical, the fit within rounding). TERRAIN_PATCHES_NUMBA=0 in the environment, or
+# use_compiled_kernels(False), selects the numpy steps.
+
+_KERNELS_UNSET = object()
+_kernels = _KERNELS_UNSET
+_kernels_lock = threading.Lock()
+
+
+def _load_kernels():
+    """The compiled kernels module, or None (numba missing: logged once, numpy steps used)."""
+    if os.environ.get('TERRAIN_PATCHES_NUMBA', '1').strip().lower() in ('0', 'false', 'no', 'off'):
+        return None
+    try:
+        from terrain_perception import _patch_kernels
+    except ImportError as e:
+        _LOG.warning('contact patches: numba is not available (%s); using the numpy reference '
+                     'steps, ~40 %% slower', e)
+        return None
+    return _patch_kernels
+
+
+def _get_kernels():
+    global _kernels
+    k = _kernels
+    if k is _KERNELS_UNSET:
+        with _kernels_lock:
+            if _kernels is _KERNELS_UNSET:
+                _kernels = _load_kernels()
+            k = _kernels
+    return k
+
+
+def use_compiled_kernels(enabled: Optional[bool] = True) -> bool:
+    """Select the compiled kernels (``True``), the numpy reference steps (``False``) or the
+    default (``None``: compiled unless numba is missing or ``TERRAIN_PATCHES_NUMBA=0``) for
+    the following calls (process-wide). Returns whether the compiled kernels are now used
+    (``True`` needs numba: ``ImportError`` otherwise)."""
+    global _kernels
+    with _kernels_lock:
+        if enabled is None:
+            _kernels = _load_kernels()
+        elif enabled:
+            from terrain_perception import _patch_kernels
+            _kernels = _patch_kernels
+        else:
+            _kernels = None
+        return _kernels is not None
+
+
+def compiled_kernels_active() -> bool:
+    """Whether find_patches currently runs the compiled kernels."""
+    return _get_kernels() is not None
 
 
 def _check_cloud(cloud: np.ndarray) -> np.ndarray:
@@ -252,7 +317,8 @@ def median_downsample_2x2(cloud: np.ndarray) -> np.ndarray:
 
 
 def _filter_and_downsample(cloud: np.ndarray, z: np.ndarray, cfg: PatchConfig,
-                           ws: Optional[_Workspace] = None, all_valid: bool = False):
+                           ws: Optional[_Workspace] = None, all_valid: bool = False,
+                           kernels=None):
     """Steps 3-4 without materialising the filtered full-resolution cloud: returns ``D`` as x,
     y, z planes and the step-3 factor (filtered cloud = ``cloud * scale[..., None]``, needed
     only at step 11). ``z``: the cloud's depth plane, contiguous. ``all_valid``: every depth is
@@ -260,6 +326,10 @@ def _filter_and_downsample(cloud: np.ndarray, z: np.ndarray, cfg: PatchConfig,
     combination of its neighbours, then stays in that range too, so every scaled z is finite."""
     scale = _bilateral_scale(z, cfg, ws, all_valid)
     h, w = cloud.shape[0] // 2 * 2, cloud.shape[1] // 2 * 2
+    if kernels is not None:     # (compiled: the same medians, bitwise)
+        D = [_array(ws, f'D{k}', (h // 2, w // 2)) for k in range(3)]
+        kernels.median_2x2_scaled(cloud, scale, *D)
+        return D, scale
     return _median_2x2(cloud[:h, :w], scale[:h, :w], ws, all_valid), scale
 
 
@@ -636,7 +706,24 @@ def fit_paraboloids(points: np.ndarray, mask: np.ndarray, up: np.ndarray,
     D[:3] = P.transpose(2, 0, 1)
     np.copyto(D[:3], 0.0, where=~M)
     D[3] = M
+    kernels = _get_kernels()
+    if kernels is not None:
+        return _fit_paraboloids_compiled(kernels, D, up, iterations)
     return _fit_paraboloids(D, M, cnt, up, iterations)
+
+
+def _fit_paraboloids_compiled(kernels, D: np.ndarray, up: np.ndarray,
+                              iterations: int) -> ParaboloidFit:
+    """:func:`_fit_paraboloids` by the compiled kernel (one patch at a time; the same fits up to
+    rounding) on the planes ``D`` ``(4, P, n)`` (x, y, z, mask as 0/1; not modified)."""
+    npatch = D.shape[1]
+    up = np.ascontiguousarray(np.broadcast_to(np.asarray(up, dtype=np.float64), (npatch, 3)))
+    vertex, R = np.empty((npatch, 3)), np.empty((npatch, 3, 3))
+    kx, ky, rms_alg, rms_euc, radius = np.empty((5, npatch))
+    cnt = np.empty(npatch, np.int64)
+    kernels.fit_paraboloids(np.ascontiguousarray(D, dtype=np.float64), up, int(iterations),
+                            vertex, R, kx, ky, rms_alg, rms_euc, radius, cnt)
+    return ParaboloidFit(vertex, R, kx, ky, rms_alg, rms_euc, radius, cnt)
 
 
 def _fit_paraboloids(D: np.ndarray, M: np.ndarray, cnt: np.ndarray, up: np.ndarray,
@@ -917,12 +1004,14 @@ def _seed_band(z: np.ndarray, fix: np.ndarray, fx: float, fy: float, cfg: PatchC
 
 def _sample_neighbourhoods(cloud: np.ndarray, scale: np.ndarray, seeds_rc_full: np.ndarray,
                            seed_pts: np.ndarray, fx: float, fy: float, cfg: PatchConfig,
-                           rng: np.random.Generator, ws: Optional[_Workspace] = None):
+                           rng: np.random.Generator, ws: Optional[_Workspace] = None,
+                           kernels=None):
     """Step 11: organized search in the filtered cloud ``cloud * scale[..., None]``. For each
     seed draw random pixels in the image window that bounds its r-ball, keep those whose points
     lie within r, at most n_f of them. Returns the neighbourhoods as x, y, z planes and the
     mask as 0/1 ``(4, n_s, n_f)`` (in draw order, unused slots 0; the planes
-    :func:`_fit_paraboloids` takes) and the mask ``(n_s, n_f)``."""
+    :func:`_fit_paraboloids` takes) and the mask ``(n_s, n_f)``; with ``kernels`` (compiled,
+    the same draws and planes) the points per seed ``(n_s,)`` instead of the mask."""
     h, w = cloud.shape[:2]
     ns, nf = len(seed_pts), cfg.max_neighbours
     k = nf * cfg.neighbour_draws
@@ -931,6 +1020,11 @@ def _sample_neighbourhoods(cloud: np.ndarray, scale: np.ndarray, seeds_rc_full: 
     # drawing the column offsets first, then the row offsets), scaled to the half-windows, then
     # the drawn pixels' columns and rows (rint, clipped to the image: exact integers).
     cr = rng.random(out=_array(ws, 'draws', (2, ns, k), np.float64))
+    if kernels is not None:     # (compiled: the same neighbourhoods, bitwise)
+        nb = np.empty((4, ns, nf))
+        n_nb = kernels.sample_neighbourhoods(cloud, scale, seeds_rc_full, seed_pts, cr, fx, fy,
+                                             r, nb)
+        return nb, n_nb
     cr *= 2.0
     cr -= 1.0
     cr *= np.maximum(np.array([[r * fx], [r * fy]]) / seed_pts[:, 2], 1.0)[:, :, None]
@@ -1008,6 +1102,7 @@ def find_patches(cloud: np.ndarray, fx: float, fy: float, gravity_cam: np.ndarra
     times: Dict[str, float] = {}
     # Stage I, on the rows that the later steps can read (see _seed_band)
     ws = _workspace()
+    kernels = _get_kernels()
     cloud = _check_cloud(cloud)
     h_even = cloud.shape[0] // 2 * 2
     z = cv2.extractChannel(cloud[:h_even], 2, dst=ws.array('z', (h_even, cloud.shape[1])))
@@ -1020,7 +1115,7 @@ def find_patches(cloud: np.ndarray, fx: float, fy: float, gravity_cam: np.ndarra
     cloud, zb = cloud[a:b], z[a:b]
     # (Most frames have invalid depths only in rows far beyond the band.)
     all_valid = 0.0 < zlo and float(zhi) < 1e30 * float(zlo) and not np.isnan(zb).any()
-    (Dx, Dy, Dz), scale = _filter_and_downsample(cloud, zb, cfg, ws, all_valid)
+    (Dx, Dy, Dz), scale = _filter_and_downsample(cloud, zb, cfg, ws, all_valid, kernels)
     t1 = clock()
     times['stage1_ms'] = 1e3 * (t1 - t0)
     # Stage II: seeds within R of the fixation point
@@ -1099,8 +1194,13 @@ def find_patches(cloud: np.ndarray, fx: float, fy: float, gravity_cam: np.ndarra
     # Seed pixel of the downsampled image -> centre of its 2x2 block at full resolution (in the
     # band's rows).
     seeds_full = np.stack([2 * rs + 0.5, 2 * cs + 0.5], -1)
-    nb, mask = _sample_neighbourhoods(cloud, scale, seeds_full, seed_pts, fx, fy, cfg, rng, ws)
-    n_nb = mask.sum(1)
+    if kernels is not None:
+        nb, n_nb = _sample_neighbourhoods(cloud, scale, seeds_full, seed_pts, fx, fy, cfg, rng,
+                                          ws, kernels)
+    else:
+        nb, mask = _sample_neighbourhoods(cloud, scale, seeds_full, seed_pts, fx, fy, cfg, rng,
+                                          ws)
+        n_nb = mask.sum(1)
     enough = n_nb >= cfg.min_neighbours
     counts['neighbourhoods'] = int(enough.sum())
     seed_don, seed_dong = seed_don[enough], seed_dong[enough]
@@ -1108,9 +1208,14 @@ def find_patches(cloud: np.ndarray, fx: float, fy: float, gravity_cam: np.ndarra
     if len(sel) == 0:
         times['stage4_ms'] = 1e3 * (clock() - t2)
         return _empty_patches(g, fix, counts, times)
-    if not enough.all():
-        nb, mask, n_nb = nb[:, enough], mask[enough], n_nb[enough]
-    fit = _fit_paraboloids(nb, mask, n_nb, -g, cfg.lm_iterations, ws)
+    if kernels is not None:
+        if not enough.all():
+            nb = nb[:, enough]
+        fit = _fit_paraboloids_compiled(kernels, nb, -g, cfg.lm_iterations)
+    else:
+        if not enough.all():
+            nb, mask, n_nb = nb[:, enough], mask[enough], n_nb[enough]
+        fit = _fit_paraboloids(nb, mask, n_nb, -g, cfg.lm_iterations, ws)
     curv_ok, res_ok = patch_filters(fit.kx, fit.ky, fit.rms_euclidean, cfg)
     keep = curv_ok & res_ok
     counts['curvature'] = int(curv_ok.sum())

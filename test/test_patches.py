@@ -415,3 +415,230 @@ def test_find_patches_bad_and_empty_input():
     far = cam.depth_to_points(np.full((48, 64), 30.0, np.float32))
     res = find_patches(far, 50, 50, [0, 1, 0], dataclasses.replace(cfg))
     assert len(res) == 0 and res.counts['seeds'] == 0
+
+
+# --------------------------------------------------------------------------------------------
+# Compiled kernels (numba) against the numpy reference steps
+# --------------------------------------------------------------------------------------------
+
+FIT_FIELDS = ('vertex', 'R', 'kx', 'ky', 'radius', 'residual', 'fixation_distance')
+FIT_RTOL = 1e-9     # the fit's sums and solves round differently (BLAS / LAPACK vs loops)
+
+
+@pytest.fixture
+def kernel_selection():
+    """The patches module with the kernel selection restored to the default afterwards."""
+    from terrain_perception import patches as pm
+    yield pm
+    pm.use_compiled_kernels(None)
+
+
+@pytest.fixture(scope='module')
+def bench_frames():
+    """Four frames of `terrain-bench plan` (rocks-6cm course seed 0, the robot's camera along the
+    course, the bench's depth noise) and their gravity vectors, made as the bench makes them."""
+    from terrain_perception.bench.plan import _depth_noise, load_profile
+    from terrain_perception.raycast import HeightFieldScene
+    from terrain_perception.robot_model import load_robot_model
+    from terrain_perception.terrain import make_course
+    from terrain_perception.transforms import make_T
+    robot_name, cfg, _, _ = load_profile()
+    robot = load_robot_model(robot_name)
+    cam = PinholeCamera(640, 480, 525.0, 525.0, 319.5, 239.5)
+    grid = make_course('rocks-6cm', 0, 0.005)
+    scene = HeightFieldScene(grid)
+    x0, x1 = grid.metadata['rough_extent_xy'][:2]
+    rng = np.random.default_rng(0)
+    frames = []
+    for k in range(4):
+        x = x0 - 0.25 + (x1 - x0) * (k + 0.5) / 4
+        yaw, y = rng.uniform(-0.3, 0.3), rng.uniform(-0.2, 0.2)
+        c, s = np.cos(yaw), np.sin(yaw)
+        T_base = make_T(np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]]),
+                        [x, y, robot.standing_height_m + 0.03])
+        depth = scene.depth_image(cam, T_base @ robot.T_base_camera)
+        cloud = cam.depth_to_points(_depth_noise(depth, rng).astype(np.float32))
+        R_imu_cam = robot.T_base_imu[:3, :3].T @ robot.T_base_camera[:3, :3]
+        g = gravity_in_camera(R_to_quat(T_base[:3, :3] @ robot.T_base_imu[:3, :3]), R_imu_cam)
+        frames.append((cloud, g))
+    return cfg, cam, frames
+
+
+def _with_holes(cloud, rng):
+    """The cloud with 4 % NaN points, 2 % zero and 1 % negative depths and some 8x8 NaN holes."""
+    c = cloud.copy()
+    u = rng.random(c.shape[:2])
+    c[u < 0.04] = np.nan
+    c[(u >= 0.04) & (u < 0.06), 2] = 0.0
+    c[(u >= 0.06) & (u < 0.07), 2] *= -1
+    blk = rng.random((c.shape[0] // 8, c.shape[1] // 8)) < 0.05
+    c[np.kron(blk, np.ones((8, 8), bool))] = np.nan
+    return c
+
+
+def _run_both(pm, cloud, fx, g, cfg):
+    """find_patches with the numpy steps and with the compiled kernels, and the seeds each passed
+    to the neighbourhood search."""
+    seeds, out = [], []
+    orig = pm._sample_neighbourhoods
+
+    def spy(cloud_, scale, seeds_full, seed_pts, *a, **k):
+        seeds.append((seeds_full.copy(), seed_pts.copy()))
+        return orig(cloud_, scale, seeds_full, seed_pts, *a, **k)
+
+    pm._sample_neighbourhoods = spy
+    try:
+        for compiled in (False, True):
+            assert pm.use_compiled_kernels(compiled) == compiled
+            seeds.append(None)
+            out.append(find_patches(cloud, fx, fx, g, cfg))
+    finally:
+        pm._sample_neighbourhoods = orig
+    s = [x for x in seeds if x is not None]
+    return out, s
+
+
+def _assert_same_patches(ref, new):
+    assert new.counts == ref.counts
+    assert len(new) == len(ref)
+    np.testing.assert_array_equal(new.support_points, ref.support_points)
+    np.testing.assert_array_equal(new.don, ref.don)          # seeds: stages I-III unchanged
+    np.testing.assert_array_equal(new.dong, ref.dong)
+    for f in FIT_FIELDS:
+        a, b = getattr(ref, f), getattr(new, f)
+        np.testing.assert_allclose(b, a, rtol=FIT_RTOL, atol=1e-12, err_msg=f)
+
+
+def test_compiled_kernels_are_active():
+    """numba is a pinned requirement: the pipeline must run compiled here (else the tests below
+    would compare the numpy steps with themselves)."""
+    from terrain_perception import patches as pm
+    assert pm.compiled_kernels_active()
+
+
+def test_compiled_kernels_match_the_numpy_steps_on_bench_frames(bench_frames, kernel_selection):
+    """Bench frames, as they are and with NaN / 0 / negative depths and holes: identical counts,
+    seeds, neighbourhood sizes, DoN / DoNG; fitted poses, curvatures, radii and residuals within
+    1e-9 relative."""
+    pm = kernel_selection
+    cfg, cam, frames = bench_frames
+    rng = np.random.default_rng(11)
+    total = 0
+    for cloud, g in frames:
+        for c in (cloud, _with_holes(cloud, rng)):
+            (ref, new), seeds = _run_both(pm, c, cam.fx, g, cfg)
+            assert len(seeds) == 2 and ref.counts['seeds'] > 50
+            np.testing.assert_array_equal(seeds[1][0], seeds[0][0])
+            np.testing.assert_array_equal(seeds[1][1], seeds[0][1])
+            _assert_same_patches(ref, new)
+            total += len(ref)
+    assert total > 300
+
+
+def test_compiled_median_and_neighbourhoods_are_bitwise_the_numpy_steps(kernel_selection):
+    """The 2x2 median of scaled points (incl. blocks with 1-3 valid points, none, and valid z with
+    a NaN or infinite x) and the neighbourhood search (same draws) give identical arrays."""
+    pm = kernel_selection
+    from terrain_perception import _patch_kernels as K
+    rng = np.random.default_rng(4)
+    h, w = 60, 80
+    cam = PinholeCamera(w, h, 300.0, 310.0, 39.5, 29.5)
+    cloud = cam.depth_to_points((0.5 + 0.01 * rng.random((h, w))).astype(np.float32))
+    u = rng.random((h, w))
+    cloud[u < 0.15] = np.nan
+    cloud[(u >= 0.15) & (u < 0.2), 2] = 0.0
+    cloud[(u >= 0.2) & (u < 0.25), 2] *= -1
+    cloud[10:14, 20:24] = np.nan                                   # blocks with no valid point
+    scale = (1.0 + 0.01 * rng.normal(size=(h, w))).astype(np.float32)
+    with np.errstate(invalid='ignore', divide='ignore'):
+        scale[~(cloud[..., 2] > 0)] = np.float32(np.inf)           # as the filter leaves them
+    with np.errstate(invalid='ignore'):
+        valid = np.isfinite(cloud[..., 2] * scale)
+    ref = pm._median_2x2(cloud, scale)
+    new = [np.empty((h // 2, w // 2), np.float32) for _ in range(3)]
+    K.median_2x2_scaled(cloud, scale, *new)
+    n_valid = valid.reshape(h // 2, 2, w // 2, 2).sum((1, 3))
+    assert set(np.unique(n_valid)) == {0, 1, 2, 3, 4}
+    for a, b in zip(ref, new):
+        np.testing.assert_array_equal(b, a)
+    odd = cloud.copy()
+    odd[5, 7, 0], odd[30, 41, 1] = np.nan, np.inf                  # valid z, bad x or y
+    odd[31, 41] = np.nan
+    ref = pm._median_2x2(odd, scale)
+    K.median_2x2_scaled(odd, scale, *new)
+    for a, b in zip(ref, new):
+        np.testing.assert_array_equal(b, a)
+    # Neighbourhoods: the same generator state gives the same planes and counts.
+    cfg = PatchConfig(patch_radius_m=0.02, max_neighbours=20, neighbour_draws=3)
+    good = np.argwhere(valid)[::37][:15]
+    seeds_full = good + 0.5
+    seed_pts = (cloud[good[:, 0], good[:, 1]] * scale[good[:, 0], good[:, 1], None]).astype(
+        np.float64)
+    with np.errstate(invalid='ignore'):                        # (0 x inf at invalid points)
+        nb_ref, mask = pm._sample_neighbourhoods(cloud, scale, seeds_full, seed_pts, 300.0,
+                                                 310.0, cfg, np.random.default_rng(8))
+    nb_new, n_nb = pm._sample_neighbourhoods(cloud, scale, seeds_full, seed_pts, 300.0, 310.0,
+                                             cfg, np.random.default_rng(8), None, K)
+    np.testing.assert_array_equal(nb_new, nb_ref)
+    np.testing.assert_array_equal(n_nb, mask.sum(1))
+    assert 0 < n_nb.min() and n_nb.max() <= cfg.max_neighbours
+
+
+def test_compiled_fit_matches_the_numpy_fit(kernel_selection):
+    """fit_paraboloids with masks holding padding anywhere, 0-10 LM iterations, one shared and
+    per-patch up vectors: the same fits within 1e-9 relative."""
+    pm = kernel_selection
+    rng = np.random.default_rng(21)
+    kx, ky = rng.uniform(-15, 15, 40), rng.uniform(-15, 15, 40)
+    pts, Rs, ts = _sample_paraboloids(rng, 40, 50, 0.03, 0.0008, kx, ky)
+    mask = rng.random((40, 50)) > 0.3
+    mask[:, :8] = True
+    pts[~mask] = rng.normal(size=(np.count_nonzero(~mask), 3))    # padding: ignored
+    for its, up in ((0, Rs[:, :, 2]), (1, [0.0, 0.0, 1.0]), (6, Rs[:, :, 2]), (10, -Rs[:, :, 2])):
+        fits = []
+        for compiled in (False, True):
+            pm.use_compiled_kernels(compiled)
+            fits.append(fit_paraboloids(pts, mask, up, iterations=its))
+        a, b = fits
+        np.testing.assert_array_equal(b.count, a.count)
+        for f in ('vertex', 'R', 'kx', 'ky', 'rms_algebraic', 'rms_euclidean', 'radius'):
+            np.testing.assert_allclose(getattr(b, f), getattr(a, f), rtol=FIT_RTOL, atol=1e-12,
+                                       err_msg=f'{f}, {its} iterations')
+
+
+def test_without_numba_the_numpy_steps_run_with_one_warning(kernel_selection, monkeypatch,
+                                                            caplog):
+    """numba missing: one logged warning, then the numpy steps (same results as selecting them);
+    TERRAIN_PATCHES_NUMBA=0 selects them without a warning."""
+    import sys
+    import terrain_perception
+    pm = kernel_selection
+    cfg = PatchConfig(bilateral_sigma_depth_m=0.01, fixation_down_m=0.2, fixation_forward_m=0.16,
+                      roi_radius_m=0.15, patch_radius_m=0.02, max_residual_m=0.002)
+    cam = PinholeCamera(320, 240, 262.5, 262.5, 159.5, 119.5)
+    T = _camera_pose(0.2, 35.0)
+    cloud = _plane_cloud(cam, T, lambda x, y: 0.01 * np.sin(20 * x) * np.cos(17 * y))
+    g = T[:3, :3].T @ np.array([0, 0, -1.0])
+    pm.use_compiled_kernels(False)
+    ref = find_patches(cloud, cam.fx, cam.fy, g, cfg)
+    assert len(ref) > 0
+    monkeypatch.setitem(sys.modules, 'numba', None)                 # import numba fails
+    monkeypatch.delitem(sys.modules, 'terrain_perception._patch_kernels', raising=False)
+    monkeypatch.delattr(terrain_perception, '_patch_kernels', raising=False)
+    with caplog.at_level('WARNING', logger='terrain_perception.patches'):
+        assert pm.use_compiled_kernels(None) is False
+        runs = [find_patches(cloud, cam.fx, cam.fy, g, cfg) for _ in range(2)]
+    warnings = [r for r in caplog.records if 'numba is not available' in r.getMessage()]
+    assert len(warnings) == 1
+    for p in runs:
+        assert p.counts == ref.counts
+        np.testing.assert_array_equal(p.vertex, ref.vertex)
+    with pytest.raises(ImportError):
+        pm.use_compiled_kernels(True)
+    monkeypatch.undo()
+    caplog.clear()
+    monkeypatch.setenv('TERRAIN_PATCHES_NUMBA', '0')
+    assert pm.use_compiled_kernels(None) is False and not pm.compiled_kernels_active()
+    monkeypatch.delenv('TERRAIN_PATCHES_NUMBA')
+    assert pm.use_compiled_kernels(None) is True
+    assert not caplog.records
