@@ -137,10 +137,10 @@ def _array(ws: Optional[_Workspace], name: str, shape, dtype=np.float32) -> np.n
 # paraboloid fit as compiled kernels (terrain_perception._patch_kernels) when numba imports;
 # the numpy steps below stay the reference they are tested against (median and search bitwise
 # identical, the fit within rounding). TERRAIN_PATCHES_NUMBA=0 in the environment, or
-# use_compiled_kernels(False), selects the numpy steps.
+# use_compiled_kernels(False), selects the numpy steps. The kernels are loaded when this module
+# is imported (~0.6 s with numba's import; ~9 s once if numba's cache is cold), so that no
+# frame pays for it.
 
-_KERNELS_UNSET = object()
-_kernels = _KERNELS_UNSET
 _kernels_lock = threading.Lock()
 
 
@@ -157,15 +157,12 @@ def _load_kernels():
     return _patch_kernels
 
 
+_kernels = _load_kernels()
+
+
 def _get_kernels():
-    global _kernels
-    k = _kernels
-    if k is _KERNELS_UNSET:
-        with _kernels_lock:
-            if _kernels is _KERNELS_UNSET:
-                _kernels = _load_kernels()
-            k = _kernels
-    return k
+    """The kernels module find_patches uses now, or None for the numpy steps."""
+    return _kernels
 
 
 def use_compiled_kernels(enabled: Optional[bool] = True) -> bool:
@@ -717,11 +714,12 @@ def _fit_paraboloids_compiled(kernels, D: np.ndarray, up: np.ndarray,
     """:func:`_fit_paraboloids` by the compiled kernel (one patch at a time; the same fits up to
     rounding) on the planes ``D`` ``(4, P, n)`` (x, y, z, mask as 0/1; not modified)."""
     npatch = D.shape[1]
-    up = np.ascontiguousarray(np.broadcast_to(np.asarray(up, dtype=np.float64), (npatch, 3)))
+    up_p = np.empty((npatch, 3))
+    up_p[:] = np.asarray(up, dtype=np.float64)               # (3,) or (P, 3)
     vertex, R = np.empty((npatch, 3)), np.empty((npatch, 3, 3))
     kx, ky, rms_alg, rms_euc, radius = np.empty((5, npatch))
     cnt = np.empty(npatch, np.int64)
-    kernels.fit_paraboloids(np.ascontiguousarray(D, dtype=np.float64), up, int(iterations),
+    kernels.fit_paraboloids(np.ascontiguousarray(D, dtype=np.float64), up_p, int(iterations),
                             vertex, R, kx, ky, rms_alg, rms_euc, radius, cnt)
     return ParaboloidFit(vertex, R, kx, ky, rms_alg, rms_euc, radius, cnt)
 
@@ -1022,8 +1020,10 @@ def _sample_neighbourhoods(cloud: np.ndarray, scale: np.ndarray, seeds_rc_full: 
     cr = rng.random(out=_array(ws, 'draws', (2, ns, k), np.float64))
     if kernels is not None:     # (compiled: the same neighbourhoods, bitwise)
         nb = np.empty((4, ns, nf))
-        n_nb = kernels.sample_neighbourhoods(cloud, scale, seeds_rc_full, seed_pts, cr, fx, fy,
-                                             r, nb)
+        n_nb = kernels.sample_neighbourhoods(
+            cloud, scale, np.ascontiguousarray(seeds_rc_full, dtype=np.float64),
+            np.ascontiguousarray(seed_pts, dtype=np.float64), cr, float(fx), float(fy), float(r),
+            nb)
         return nb, n_nb
     cr *= 2.0
     cr -= 1.0
@@ -1104,6 +1104,8 @@ def find_patches(cloud: np.ndarray, fx: float, fy: float, gravity_cam: np.ndarra
     ws = _workspace()
     kernels = _get_kernels()
     cloud = _check_cloud(cloud)
+    if kernels is not None:     # (the kernels take C-contiguous arrays; most clouds are)
+        cloud = np.ascontiguousarray(cloud)
     h_even = cloud.shape[0] // 2 * 2
     z = cv2.extractChannel(cloud[:h_even], 2, dst=ws.array('z', (h_even, cloud.shape[1])))
     band = _seed_band(z, fix, fx, fy, cfg, depth_range=True)
