@@ -5,6 +5,9 @@ can be imported (the numpy steps stay the reference, see ``patches.use_compiled_
 
 * :func:`median_2x2_scaled` - step 4, the 2x2 median of the bilaterally scaled points (the scale
   applied on the fly). Bitwise identical to ``patches._median_2x2`` (same float32 operations).
+* :func:`integral_moments` - step 7's integral images of point count, centred points, squares
+  and products (``patches.IntegralMoments``) in one pass. Bitwise identical: the same float32
+  centring and products, summed in float64 in OpenCV's ``integral`` order.
 * :func:`sample_neighbourhoods` - step 11, the organized neighbourhood search, given the uniform
   draws that the caller takes from its generator exactly as the numpy step does. Bitwise
   identical to ``patches._sample_neighbourhoods`` (same float64 operations, in the same order).
@@ -35,6 +38,7 @@ _i8_1d = types.int64[::1]
 # inputs only read: read-only arrays (writable ones convert; clouds from message buffers are not)
 _in_f4_2d, _in_f4_3d = (types.Array(types.float32, n, 'C', readonly=True) for n in (2, 3))
 _in_f8_2d, _in_f8_3d = (types.Array(types.float64, n, 'C', readonly=True) for n in (2, 3))
+_in_f4_2d_any = types.Array(types.float32, 2, 'A', readonly=True)
 
 
 # --------------------------------------------------------------------------------------------
@@ -126,6 +130,66 @@ def median_2x2_scaled(cloud, scale, Dx, Dy, Dz):
                         Dy[i, j] = m
                     else:
                         Dz[i, j] = m
+
+
+# --------------------------------------------------------------------------------------------
+# Step 7: integral images
+# --------------------------------------------------------------------------------------------
+
+@njit(types.void(_in_f4_2d_any, _in_f4_2d_any, _in_f4_2d_any, types.float32, types.float32,
+                 types.float32, types.int32[:, :, ::1], _f8_3d, _f8_3d, _f8_3d), **_JIT)
+def integral_moments(x, y, z, ox, oy, oz, ii_n, ii_p, ii_q, ii_r):
+    """Integral images (h + 1, w + 1, .) of the planes ``x, y, z`` (h, w) centred on ``(ox, oy,
+    oz)``: ``ii_n`` the valid (finite z) point count, ``ii_p`` the centred points ``p``
+    (float32), ``ii_q`` their squares (float64, exact), ``ii_r`` the float32 products
+    ``(p_x p_y, p_y p_z, p_z p_x)``; invalid points count as 0. ``patches.IntegralMoments``
+    builds the same images with OpenCV (``cv2.integral``: a running row sum added to the row
+    above, in float64), bit for bit."""
+    h, w = z.shape
+    for c in range(w + 1):
+        ii_n[0, c, 0] = 0
+        for k in range(3):
+            ii_p[0, c, k] = 0.0
+            ii_q[0, c, k] = 0.0
+            ii_r[0, c, k] = 0.0
+    zero = np.float32(0.0)
+    for i in range(h):
+        ii_n[i + 1, 0, 0] = 0
+        for k in range(3):
+            ii_p[i + 1, 0, k] = 0.0
+            ii_q[i + 1, 0, k] = 0.0
+            ii_r[i + 1, 0, k] = 0.0
+        sn = 0
+        s0 = s1 = s2 = s3 = s4 = s5 = s6 = s7 = s8 = 0.0
+        for j in range(w):
+            zz = z[i, j]
+            if math.isfinite(zz):
+                px = x[i, j] - ox
+                py = y[i, j] - oy
+                pz = zz - oz
+                sn += 1
+            else:
+                px = py = pz = zero
+            dx, dy, dz = np.float64(px), np.float64(py), np.float64(pz)
+            s0 += dx
+            s1 += dy
+            s2 += dz
+            s3 += dx * dx
+            s4 += dy * dy
+            s5 += dz * dz
+            s6 += np.float64(px * py)
+            s7 += np.float64(py * pz)
+            s8 += np.float64(pz * px)
+            ii_n[i + 1, j + 1, 0] = ii_n[i, j + 1, 0] + sn
+            ii_p[i + 1, j + 1, 0] = ii_p[i, j + 1, 0] + s0
+            ii_p[i + 1, j + 1, 1] = ii_p[i, j + 1, 1] + s1
+            ii_p[i + 1, j + 1, 2] = ii_p[i, j + 1, 2] + s2
+            ii_q[i + 1, j + 1, 0] = ii_q[i, j + 1, 0] + s3
+            ii_q[i + 1, j + 1, 1] = ii_q[i, j + 1, 1] + s4
+            ii_q[i + 1, j + 1, 2] = ii_q[i, j + 1, 2] + s5
+            ii_r[i + 1, j + 1, 0] = ii_r[i, j + 1, 0] + s6
+            ii_r[i + 1, j + 1, 1] = ii_r[i, j + 1, 1] + s7
+            ii_r[i + 1, j + 1, 2] = ii_r[i, j + 1, 2] + s8
 
 
 # --------------------------------------------------------------------------------------------

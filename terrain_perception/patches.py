@@ -133,10 +133,10 @@ def _array(ws: Optional[_Workspace], name: str, shape, dtype=np.float32) -> np.n
 # Compiled kernels (numba) or the numpy reference steps
 # --------------------------------------------------------------------------------------------
 #
-# find_patches (and fit_paraboloids) run the 2x2 median, the neighbourhood search and the
-# paraboloid fit as compiled kernels (terrain_perception._patch_kernels) when numba imports;
-# the numpy steps below stay the reference they are tested against (median and search bitwise
-# identical, the fit within rounding). TERRAIN_PATCHES_NUMBA=0 in the environment, or
+# find_patches (and fit_paraboloids) run the 2x2 median, the integral images, the neighbourhood
+# search and the paraboloid fit as compiled kernels (terrain_perception._patch_kernels) when
+# numba imports; the numpy / OpenCV steps below stay the reference they are tested against
+# (median, integral images and search bitwise identical, the fit within rounding). TERRAIN_PATCHES_NUMBA=0 in the environment, or
 # use_compiled_kernels(False), selects the numpy steps. The kernels are loaded when this module
 # is imported (~0.6 s with numba's import; ~9 s once if numba's cache is cold), so that no
 # frame pays for it.
@@ -429,13 +429,14 @@ class IntegralMoments:
 
     @classmethod
     def _from_planes(cls, x: np.ndarray, y: np.ndarray, z: np.ndarray,
-                     ws: Optional[_Workspace] = None) -> 'IntegralMoments':
-        """The same from x, y, z planes ``(h, w)``, its images in the workspace ``ws``."""
+                     ws: Optional[_Workspace] = None, kernels=None) -> 'IntegralMoments':
+        """The same from x, y, z planes ``(h, w)``, its images in the workspace ``ws``;
+        ``kernels``: built by the compiled kernel (the same images, bitwise)."""
         self = cls.__new__(cls)
-        self._build(x, y, z, ws)
+        self._build(x, y, z, ws, kernels)
         return self
 
-    def _build(self, x, y, z, ws) -> None:
+    def _build(self, x, y, z, ws, kernels=None) -> None:
         valid = np.isfinite(z)
         h, w = valid.shape
         # Centre on the mean point to keep the second moments well conditioned; the centred
@@ -448,6 +449,12 @@ class IntegralMoments:
         sub = [c[::4, ::4][vs] for c in (x, y, z)] if vs.any() else [c[valid] for c in (x, y, z)]
         self.offset = (np.array([np.cumsum(c, dtype=np.float64)[-1] for c in sub]) / len(sub[0])
                        if len(sub[0]) else np.zeros(3))
+        self.shape = (h, w)
+        if kernels is not None:
+            self.ii = [_array(ws, f'ii_{k}', (h + 1, w + 1, 1 if k == 0 else 3),
+                              np.int32 if k == 0 else np.float64) for k in range(4)]
+            kernels.integral_moments(x, y, z, *np.float32(self.offset), *self.ii)
+            return
         # P: the centred points, 0 where invalid (z not finite).
         P = cv2.merge([x, y, z], dst=_array(ws, 'ii_P', (h, w, 3)))
         cv2.subtract(P, tuple(np.float32(self.offset).tolist()) + (0.0,), dst=P)
@@ -465,7 +472,6 @@ class IntegralMoments:
                                 sum=_array(ws, f'ii_{k}', (h + 1, w + 1, 1 if k == 0 else 3),
                                            np.int32 if k == 0 else np.float64))
                    for k, a in enumerate(images)]
-        self.shape = (h, w)
 
     def window_normals(self, rows: np.ndarray, cols: np.ndarray, half: np.ndarray,
                        min_points: int = 6):
@@ -1157,7 +1163,7 @@ def find_patches(cloud: np.ndarray, fx: float, fy: float, gravity_cam: np.ndarra
         r0, r1 = max(flat[0] // w2 - half, 0), min(flat[-1] // w2 + half + 1, Dz.shape[0])
         c0, c1 = max(cols_in[0] - half, 0), min(cols_in[-1] + half + 1, w2)
         box = np.s_[r0:r1, c0:c1]
-        moments = IntegralMoments._from_planes(Dx[box], Dy[box], Dz[box], ws)
+        moments = IntegralMoments._from_planes(Dx[box], Dy[box], Dz[box], ws, kernels)
     while n_eval < n_cand and n_kept < cfg.max_seeds:
         if n_eval == len(order):      # first draw used up: the rest in random order
             rest = np.ones(n_cand, bool)

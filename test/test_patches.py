@@ -591,6 +591,37 @@ def test_compiled_median_and_neighbourhoods_are_bitwise_the_numpy_steps(kernel_s
     assert 0 < n_nb.min() and n_nb.max() <= cfg.max_neighbours
 
 
+def test_compiled_integral_images_are_bitwise_opencvs(bench_frames, kernel_selection):
+    """The integral images of a downsampled bench frame's crop (a strided view, as find_patches
+    passes), with and without invalid points, equal IntegralMoments' OpenCV ones bit for bit."""
+    pm = kernel_selection
+    from terrain_perception import _patch_kernels as K
+    cfg, cam, frames = bench_frames
+    D = median_downsample_2x2(bilateral_filter_cloud(frames[1][0], cfg))
+    planes = [np.ascontiguousarray(D[..., k]) for k in range(3)]
+    box = np.s_[60:200, 30:290]
+    for holes in (False, True):
+        if holes:
+            rng = np.random.default_rng(2)
+            bad = rng.random(planes[2].shape) < 0.05
+            planes[2][bad] = np.nan
+            odd = rng.random(planes[2].shape) < 0.01                 # x NaN, z finite (off
+            odd[::2] = False                                          # the offset's rows)
+            planes[0][odd] = np.nan
+        views = [p[box] for p in planes]
+        ref = pm.IntegralMoments._from_planes(*views)
+        new = pm.IntegralMoments._from_planes(*views, None, K)
+        assert new.shape == ref.shape and np.array_equal(new.offset, ref.offset)
+        assert np.isfinite(ref.offset).all()
+        for a, b in zip(ref.ii, new.ii):
+            assert a.dtype == b.dtype
+            np.testing.assert_array_equal(b, a)
+        rows, cols = np.array([5, 70, 139]), np.array([0, 100, 259])
+        for a, b in zip(ref.window_normals(rows, cols, np.array([3, 8, 20])),
+                        new.window_normals(rows, cols, np.array([3, 8, 20]))):
+            np.testing.assert_array_equal(b, a)
+
+
 def test_compiled_fit_matches_the_numpy_fit(kernel_selection):
     """fit_paraboloids with masks holding padding anywhere, 0-10 LM iterations, one shared and
     per-patch up vectors: the same fits within 1e-9 relative."""
