@@ -101,16 +101,25 @@ class WalkingConfig:
     early_touchdown_fraction: float = param(0.75, 'Contact after this fraction of a swing ends '
                                             'the swing where the foot is: the ground is higher '
                                             'than planned [-]', 0.5, 1.0)
+    early_touchdown_max_above_m: float = param(
+        0.04, 'A contact while the swinging foot is still more than this above its foothold '
+        'does not end the swing: the ground under the foothold is not that far off the map, '
+        'so it is a shank or the foot touching an obstacle on the way [m]', 0.0, 1.0)
     probe_depth_m: float = param(0.03, 'A foot that is not loaded when it should be (after its '
                                  'swing, or before another leg lifts) is lowered up to this '
                                  'far below its foothold looking for the ground [m]', 0.0, 0.2)
     probe_speed_m_s: float = param(0.03, 'Descent speed while probing for the ground [m/s]',
                                    0.001, 1.0)
-    body_tilt_gain: float = param(0.0, 'Share of the slope of the stance feet\'s plane (front '
+    body_tilt_gain: float = param(0.7, 'Share of the slope of the stance feet\'s plane (front '
                                   'vs hind, left vs right) by which the body pitches and rolls '
                                   'with it, so legs on higher ground are not folded while the '
                                   'others stretch (0 = level body) [-]', 0.0, 1.0)
     max_body_tilt_deg: float = param(15.0, 'Cap of that body pitch and roll [deg]', 0.0, 45.0)
+    tilt_map_tolerance_m: float = param(
+        0.015, 'For that tilt a foot counts at most this far above the height map under it: '
+        'touchdown sensing cannot tell a foot on the ground from a shank resting on an '
+        'obstacle with the foot in the air, and tilting the body after such a foot pitches it '
+        'for nothing (no effect where the map is unknown or not set) [m]', 0.0, 1.0)
     attitude_gain: float = param(0.7, 'Share of the measured body tilt (IMU) that each body '
                                  'shift corrects by re-estimating the stance feet heights and '
                                  'changing the legs\' lengths (0 = level-body open loop) [-]',
@@ -576,6 +585,11 @@ class WalkingController:
             return bool((self._touch_count[legs] >= self.config.contact_ticks).all())
         if seg.kind == 'swing' and t - seg.t0 >= self.config.early_touchdown_fraction \
                 * seg.duration and t < seg.t_end and loaded[legs].all():
+            # Higher than the foothold by more than the map can be wrong: not the ground
+            # under the foothold but a shank or the foot meeting an obstacle on the way.
+            above = seg.feet_at(t - seg.t0)[legs, 2] - seg.feet_end[legs, 2]
+            if np.any(above > self.config.early_touchdown_max_above_m):
+                return False
             self.touchdowns['early'] += 1
             return True
         return False
@@ -672,9 +686,23 @@ class WalkingController:
         the feet's plane by ``body_tilt_gain``."""
         goal = gaitlib.body_pose_from_feet(feet, self.model.standing_height_m)
         c = self.config
-        pitch, roll = gaitlib.body_tilt_from_feet(feet, float(goal[3]), c.body_tilt_gain,
+        pitch, roll = gaitlib.body_tilt_from_feet(self._tilt_feet(feet), float(goal[3]),
+                                                  c.body_tilt_gain,
                                                   np.radians(c.max_body_tilt_deg))
         return np.r_[goal, pitch, roll]
+
+    def _tilt_feet(self, feet: np.ndarray) -> np.ndarray:
+        """``feet`` (odom) with each height capped at ``tilt_map_tolerance_m`` above the
+        height map under the foot, where the map knows it (what the body tilt follows)."""
+        if self.config.body_tilt_gain <= 0.0 or self.height is None:
+            return feet
+        in_map = transform_points(self.T_map_odom, feet)
+        ground = gaitlib.terrain_height(self.height, in_map[:, :2])
+        cap = ground - (in_map[:, 2] - feet[:, 2]) + self.config.tilt_map_tolerance_m
+        out = np.array(feet, dtype=float)
+        known = np.isfinite(cap)
+        out[known, 2] = np.minimum(out[known, 2], cap[known])
+        return out
 
     def _recenter(self, t0: float) -> Optional[_Segment]:
         if not self.config.recenter:

@@ -288,3 +288,34 @@ def test_body_tilts_with_the_feet_plane_and_keeps_legs_mid_range():
         stretch[gain] = float(np.max(np.linalg.norm(
             centres - np.array(m.leg_plane_offsets), axis=1)))
     assert stretch[1.0] < stretch[0.0] - 0.003
+
+
+def test_body_tilt_follows_a_foot_only_as_far_as_the_map_under_it_allows():
+    """The same 4 cm ledge, with a height map: where the map shows the ledge the body pitches
+    with the feet; where the map says the ground under the front feet is flat (the feet held
+    up by something the map does not know, as by a shank resting on an obstacle) the pitch
+    is capped by ``tilt_map_tolerance_m`` above the map."""
+    m = load_robot_model('littledog')
+    T = make_T(np.eye(3), [0.0, 0.0, m.standing_height_m])
+    legs, pos = G.straight_footsteps(m, T, 0.05)
+    legs, pos = legs[:4], pos[:4].copy()
+    pos[legs < 2, 2] += 0.04
+    edge = 0.5 * (pos[legs < 2, 0].min() + pos[legs >= 2, 0].max())
+    spacing = np.mean(pos[legs < 2, 0]) - np.mean(pos[legs >= 2, 0])
+    tol = 0.01
+    pitches = {}
+    for name, height in (('ledge', lambda xy: np.where(np.asarray(xy)[..., 0] > edge, 0.04, 0.0)),
+                         ('flat', lambda xy: np.zeros(np.shape(xy)[:-1]))):
+        ctl = WalkingController(m, WalkingConfig(plan_timeout_s=1e3, body_tilt_gain=1.0,
+                                                 tilt_map_tolerance_m=tol), height=height)
+        ctl.reset(0.0, None, T)
+        ctl.set_footsteps(legs, pos, 'walk', 0.0)
+        _run(ctl, 0.0, 30.0)
+        assert ctl.steps_done == 4, ctl.last_error
+        R = ctl.odom_pose[:3, :3]
+        pitches[name] = float(np.arcsin(-R[2, 0]))
+    assert pitches['ledge'] == pytest.approx(-np.arctan2(0.04, spacing), abs=2e-3)
+    # the front feet count at most tol above the flat map (the hind feet stand
+    # touchdown_depth_m below it): the pitch of a ledge that much high
+    dz = tol + WalkingConfig().touchdown_depth_m
+    assert pitches['flat'] == pytest.approx(-np.arctan2(dz, spacing), abs=2e-3)
