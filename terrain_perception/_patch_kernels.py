@@ -18,9 +18,10 @@ can be imported (the numpy steps stay the reference, see ``patches.use_compiled_
 
 All kernels are compiled with ``cache=True`` (the machine code is cached next to this file, in
 ``__pycache__``) and ``nogil=True``; fastmath is off, so no operation is reordered or fused.
-The three entry points have explicit signatures (C-contiguous arrays), so importing this module
-compiles them, or loads them from the cache: ~9 s once per machine and source version, then
-~0.3 s (numba's import included), before any frame is timed or processed.
+The four entry points have explicit signatures (C-contiguous arrays, read-only inputs), so
+importing this module compiles them, or loads them from the cache: ~11 s once per machine and
+version of this file (on the 2-core development VM; the fit is ~7 s of it), then ~0.4 s
+(+0.25 s numba's import), before any frame is timed or processed.
 """
 
 from __future__ import annotations
@@ -46,10 +47,9 @@ _in_f4_2d_any = types.Array(types.float32, 2, 'A', readonly=True)
 # --------------------------------------------------------------------------------------------
 
 @njit(**_JIT)
-def _median_of_valid(v, valid):
+def _median_of_valid(v, valid, buf):
     """Median of the valid entries of ``v`` (4,) (NaN sorted last, as ``np.sort``; NaN if
-    none)."""
-    buf = np.empty(4, np.float32)
+    none); ``buf``: scratch (4,)."""
     n = 0
     for i in range(4):
         if valid[i]:
@@ -80,6 +80,7 @@ def median_2x2_scaled(cloud, scale, Dx, Dy, Dz):
     half = np.float32(0.5)
     v = np.empty(4, np.float32)
     valid = np.empty(4, np.bool_)
+    buf = np.empty(4, np.float32)
     for i in range(h2):
         r0 = 2 * i
         r1 = r0 + 1
@@ -123,7 +124,7 @@ def median_2x2_scaled(cloud, scale, Dx, Dy, Dz):
                     v[1] = cloud[r1, c0, k] * s10
                     v[2] = cloud[r0, c1, k] * s01
                     v[3] = cloud[r1, c1, k] * s11
-                    m = _median_of_valid(v, valid)
+                    m = _median_of_valid(v, valid, buf)
                     if k == 0:
                         Dx[i, j] = m
                     elif k == 1:
