@@ -114,7 +114,7 @@ class PlannerConfig:
         'slope limits: a map coarser and noisier than the terrain under-reads the edges the '
         'foot meets (1 = no margin)', 0.1, 1.0)
     max_leg_spread_m: float = param(
-        0.15, 'largest distance along the walking direction by which a new foothold may lead '
+        0.12, 'largest distance along the walking direction by which a new foothold may lead '
         'the rearmost other foot, both measured from their nominal places [m] (0 = no limit)',
         0.0, 10.0)
     min_stance_length: float = param(
