@@ -7,6 +7,9 @@ Subscriptions:
                            ICP when ``use_coarse_cloud`` and one with the same stamp arrived)
     /odom/dead_reckoning   nav_msgs/Odometry, ``T_odom_base`` (reliable)
     /imu/data              sensor_msgs/Imu (sensor data; only with ``use_gravity_prior``)
+    /joint_states          sensor_msgs/JointState (sensor data): the legs' pose at each cloud's
+                           stamp, so points on the robot's own legs are not mapped
+                           (``self_filter_margin_m``; no filter while none has arrived)
 Publications:
     /icp/pose              geometry_msgs/PoseStamped, ``T_map_base`` of each capture (reliable)
     /icp/odom              nav_msgs/Odometry, the same with dead reckoning's twist (reliable)
@@ -32,16 +35,18 @@ A rejected alignment is counted too; the pose published for it is the dead-recko
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Dict, Optional
+from collections import deque
+from typing import Deque, Dict, Optional
 
 import numpy as np
 from geometry_msgs.msg import PoseArray, PoseStamped
 from nav_msgs.msg import Odometry
 from rclpy.node import Node
-from sensor_msgs.msg import Imu, PointCloud2
+from sensor_msgs.msg import Imu, JointState, PointCloud2
 from terrain_msgs.msg import TerrainGrid
 
 from terrain_perception.config import param
+from terrain_perception.kinematics import self_mask
 from terrain_perception.mapping import IcpMapper, MapperConfig, OdometryGate, PoseBuffer
 from terrain_perception.robot_model import load_robot_model
 from terrain_ros.conversions import (cloud_to_xyz, grid_to_msg, make_header, matrix_to_pose,
@@ -73,6 +78,13 @@ class IcpMapperNodeConfig:
                                       1000)
     diagnostics_period_s: float = param(1.0, 'period of the counters message [s]', 0.05,
                                         3600.0)
+    self_filter_margin_m: float = param(
+        0.015, 'points within the foot radius plus this of a leg (thigh and shank segments, '
+        'forward kinematics of /joint_states at the cloud\'s stamp) are dropped: the camera '
+        'sees the front legs, which are not terrain [m] (negative = no filter)', -1.0, 0.5)
+    self_filter_max_gap_s: float = param(
+        0.1, 'the joint state used for a cloud must be stamped within this of it [s]; otherwise '
+        'the cloud is mapped unfiltered and counted', 0.0, 10.0)
 
 
 def _odom_key(reason: str) -> str:
@@ -102,6 +114,7 @@ class IcpMapperNode(Node):
         self.mapper_cfg: MapperConfig = declare_config(self, MapperConfig)
         self.robot = load_robot_model(self.node_cfg.robot)
         self.T_base_camera = np.asarray(self.robot.T_base_camera)
+        self._T_camera_base = np.linalg.inv(self.T_base_camera)
         # f b of the stereo head sets each point's depth noise (MapperConfig.disparity_sigma_px)
         self.mapper = IcpMapper(self.mapper_cfg, self.T_base_camera,
                                 self.robot.camera.fx * self.robot.baseline_m)
@@ -114,6 +127,7 @@ class IcpMapperNode(Node):
         self._up_base: Optional[np.ndarray] = None
         self._fine_stamp = None  # stamp of a fused map not yet published
         self.captures = 0
+        self._joints: Deque[tuple] = deque(maxlen=2000)   # (stamp [s], q (4, 3))
 
         self.pub_pose = self.create_publisher(PoseStamped, '/icp/pose', RELIABLE_QOS)
         self.pub_odom = self.create_publisher(Odometry, '/icp/odom', RELIABLE_QOS)
@@ -129,6 +143,9 @@ class IcpMapperNode(Node):
                                      SENSOR_QOS)
         if self.mapper_cfg.use_gravity_prior:
             self.create_subscription(Imu, '/imu/data', self._on_imu, SENSOR_QOS)
+        if c.self_filter_margin_m >= 0:
+            self.create_subscription(JointState, '/joint_states', self._on_joint_state,
+                                     SENSOR_QOS)
         self.create_timer(c.diagnostics_period_s, self._publish_diagnostics)
         self.get_logger().info(f'icp_mapper: robot {self.robot.name}, fine map '
                                f'{self.mapper.fine.shape} cells of '
@@ -146,6 +163,42 @@ class IcpMapperNode(Node):
             self.counters.bump(_odom_key(str(exc)), str(exc))
             return
         self._twist = msg.twist.twist
+
+    def _on_joint_state(self, msg: JointState) -> None:
+        names = list(msg.name)
+        missing = [n for n in self.robot.joint_names if n not in names]
+        if missing or len(msg.position) != len(names):
+            self.counters.bump('bad_joint_state', f'joint state lacks {missing} or has '
+                               f'{len(msg.position)} positions for {len(names)} names; ignored')
+            return
+        q = np.asarray(msg.position, dtype=float)[[names.index(n) for n in
+                                                   self.robot.joint_names]]
+        t = stamp_to_sec(msg.header.stamp)
+        if not (np.all(np.isfinite(q)) and np.isfinite(t)):
+            self.counters.bump('bad_joint_state', 'joint state holds NaN/inf; ignored')
+            return
+        if self._joints and t < self._joints[-1][0]:
+            self._joints.clear()                    # time went back (a replayed bag restarted)
+        self._joints.append((t, q.reshape(4, 3)))
+
+    def _self_filter(self, cloud: np.ndarray, t: float) -> np.ndarray:
+        """``cloud`` (camera frame) with the points on the robot's legs set to NaN."""
+        margin = self.node_cfg.self_filter_margin_m
+        if margin < 0 or not self._joints:
+            return cloud
+        stamps = np.fromiter((s for s, _ in self._joints), float, len(self._joints))
+        k = int(np.argmin(np.abs(stamps - t)))
+        if abs(stamps[k] - t) > self.node_cfg.self_filter_max_gap_s:
+            self.counters.bump('self_filter_no_joint_state',
+                               f'no joint state within {self.node_cfg.self_filter_max_gap_s} s '
+                               f'of the cloud at {t:.3f} s; mapped without the self filter')
+            return cloud
+        mask = self_mask(self.robot, self._joints[k][1], cloud, self._T_camera_base, margin)
+        if not mask.any():
+            return cloud
+        out = np.array(cloud, dtype=np.float32 if cloud.dtype == np.float32 else np.float64)
+        out[mask] = np.nan
+        return out
 
     def _on_coarse(self, msg: PointCloud2) -> None:
         key = (msg.header.stamp.sec, msg.header.stamp.nanosec)
@@ -172,7 +225,8 @@ class IcpMapperNode(Node):
             coarse = None
             key = (msg.header.stamp.sec, msg.header.stamp.nanosec)
             if key in self._coarse:
-                coarse = cloud_to_xyz(self._coarse.pop(key))
+                coarse = self._self_filter(cloud_to_xyz(self._coarse.pop(key)), t)
+            cloud = self._self_filter(cloud, t)
             if t < self.mapper.stamp_s - self.mapper_cfg.stamp_tolerance_s:
                 raise ValueError(f'cloud at {t:.3f} s is older than the map '
                                  f'({self.mapper.stamp_s:.3f} s)')

@@ -199,6 +199,43 @@ def leg_points(model: RobotModel, q: np.ndarray) -> np.ndarray:
     return np.stack(pts, axis=-2)
 
 
+def self_mask(model: RobotModel, q: np.ndarray, points: np.ndarray,
+              T_frame_base: np.ndarray, margin_m: float) -> np.ndarray:
+    """Which of ``points`` ``(..., 3)`` (in a frame ``T_frame_base`` maps base_link into, e.g.
+    the camera's) lie on the robot's own legs: within ``foot_radius_m + margin_m`` of a thigh
+    (hip-flexion origin to knee) or shank (knee to foot centre) segment at joint angles ``q``
+    ``(4, 3)``. A camera that sees the front legs would otherwise map them as terrain.
+
+    NaN points are not masked. Cost: only points inside the legs' bounding box are tested.
+    """
+    pts = np.asarray(points, dtype=np.float64)
+    if pts.shape[-1] != 3:
+        raise ValueError(f'points must be (..., 3), got shape {pts.shape}')
+    q = _leg_arrays(model, q, 'joint angles')
+    if q.shape != (4, 3):
+        raise ValueError(f'one joint configuration (4, 3) expected, got {q.shape}')
+    lp = leg_points(model, q)[:, 1:]                       # hip-flexion origin, knee, foot
+    T = np.asarray(T_frame_base, dtype=np.float64)
+    lp = lp @ T[:3, :3].T + T[:3, 3]
+    a = lp[:, :2].reshape(-1, 3)                           # segment starts (8, 3)
+    b = lp[:, 1:].reshape(-1, 3)                           # segment ends
+    r = model.foot_radius_m + float(margin_m)
+    flat = pts.reshape(-1, 3)
+    out = np.zeros(len(flat), dtype=bool)
+    lo, hi = np.minimum(a, b).min(axis=0) - r, np.maximum(a, b).max(axis=0) + r
+    with np.errstate(invalid='ignore'):
+        cand = np.flatnonzero(np.all((flat >= lo) & (flat <= hi), axis=1))
+    if len(cand) == 0:
+        return out.reshape(pts.shape[:-1])
+    p = flat[cand]
+    ab = b - a
+    t = np.clip(np.einsum('nkj,kj->nk', p[:, None, :] - a, ab)
+                / np.maximum(np.einsum('kj,kj->k', ab, ab), 1e-12), 0.0, 1.0)
+    d2 = np.sum((p[:, None, :] - (a + t[..., None] * ab)) ** 2, axis=-1)
+    out[cand] = (d2 <= r * r).any(axis=1)
+    return out.reshape(pts.shape[:-1])
+
+
 def com_base(model: RobotModel, q: np.ndarray) -> np.ndarray:
     """Whole-robot centre of mass ``(..., 3)`` in base_link [m] for joint angles ``(..., 4, 3)``.
 

@@ -147,6 +147,11 @@ class MapperConfig:
     cell_outlier_gate_m: float = param(0.015, 'per capture, samples farther than this [m] from '
                                        'their cell\'s mean are dropped (0 = keep all)',
                                        0.0, 1.0)
+    line_of_sight_tolerance_m: float = param(
+        0.05, 'a point is not fused when the ray from the camera to it passes more than this '
+        '[m] below a cell the fine map has already observed, in the last 70 % of its length: '
+        'the ray could not have got through that ground (a stereo mismatch far below the '
+        'terrain); 0 = no check', 0.0, 1.0)
     recenter_distance_m: float = param(0.5, 'move the maps when the robot is this far [m] '
                                        'from the fine map centre', 0.0, 100.0)
     max_capture_poses: int = param(200, 'capture poses kept with the map', 1, 100000)
@@ -622,6 +627,29 @@ class FineHeightMap:
             hp = s['mean'] - gx * mx - gy * my
         return np.where(good, hp, h)
 
+    def rays_below(self, points: np.ndarray, origin: np.ndarray, tolerance_m: float,
+                   fractions: np.ndarray = np.linspace(0.3, 0.95, 8)) -> np.ndarray:
+        """Which points ``(N, 3)`` are seen from ``origin`` ``(3,)`` along a ray that passes
+        more than ``tolerance_m`` below the height of an observed cell at one of ``fractions``
+        of the way: a line of sight through known ground, so the point cannot be right."""
+        pts = np.asarray(points, dtype=np.float64)
+        out = np.zeros(len(pts), dtype=bool)
+        if len(pts) == 0 or not np.any(self.s['n'] > 0):
+            return out
+        h = self.heights()
+        o = np.asarray(origin, dtype=np.float64)
+        r = self.resolution_m
+        for f in fractions:
+            q = o + f * (pts - o)
+            ij = np.floor((q[:, :2] - self.origin_xy) / r).astype(np.int64)
+            inside = ((ij[:, 0] >= 0) & (ij[:, 0] < self.shape[0])
+                      & (ij[:, 1] >= 0) & (ij[:, 1] < self.shape[1]))
+            k = np.flatnonzero(inside)
+            hk = h[ij[k, 0], ij[k, 1]]
+            with np.errstate(invalid='ignore'):
+                out[k] |= q[k, 2] < hk - tolerance_m          # (NaN cells: False)
+        return out
+
     def normals_at(self, xy: np.ndarray, half_width_cells: int) -> np.ndarray:
         """Unit normals ``(N, 3)`` of the height map at world ``xy`` [m]
         (see :func:`height_map_normals`)."""
@@ -939,6 +967,13 @@ class IcpMapper:
         """Add a capture at a known camera pose to both models (moving them if needed)."""
         c = self.config
         self._recenter(T_map_base[:3, 3])
+        if c.line_of_sight_tolerance_m > 0:
+            # before this capture is added: its own points do not vouch for each other
+            bad = self.fine.rays_below(transform_points(T_map_camera, fine_camera),
+                                       T_map_camera[:3, 3], c.line_of_sight_tolerance_m)
+            if bad.any():
+                self.counters['points_below_line_of_sight'] += int(bad.sum())
+                fine_camera = fine_camera[~bad]
         near = fine_camera[fine_camera[:, 2] <= c.fine_max_range_m]
         self.fine.add(transform_points(T_map_camera, near), stamp_s,
                       depth_weights(near[:, 2], self.focal_baseline_px_m, c.disparity_sigma_px,

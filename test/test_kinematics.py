@@ -109,3 +109,29 @@ def test_foot_forces_invert_the_static_torques():
     tau = -(np.swapaxes(K.jacobian(m, q), -1, -2) @ f[..., None])[..., 0]
     np.testing.assert_allclose(K.foot_forces(m, q, tau), f, atol=1e-9)
     np.testing.assert_allclose(K.foot_forces(m, q.reshape(12), tau.reshape(12)), f, atol=1e-9)
+
+
+def test_self_mask_covers_the_legs_and_not_the_ground_around_the_feet():
+    m = load_robot_model('littledog')
+    q = K.standing_joint_angles(m)
+    lp = K.leg_points(m, q)                                 # (4, 4, 3) base frame
+    T = np.eye(4)
+    T[:3, 3] = [0.3, -0.1, 0.5]                            # any frame: the mask moves with it
+    # points along every thigh and shank, 1 cm off the segment
+    t = np.linspace(0.0, 1.0, 7)[:, None]
+    on = np.concatenate([a + t * (b - a) + [0.0, 0.01, 0.0]
+                         for leg in lp for a, b in ((leg[1], leg[2]), (leg[2], leg[3]))])
+    feet = lp[:, 3]
+    # ground 4 cm around each foot's contact point, and far ground
+    ang = np.linspace(0, 2 * np.pi, 9)[:-1]
+    ring = np.concatenate([f + np.c_[0.04 * np.cos(ang), 0.04 * np.sin(ang),
+                                     np.full(8, -m.foot_radius_m)] for f in feet])
+    far = np.array([[0.6, 0.0, feet[0, 2] - m.foot_radius_m], [np.nan, 0.0, 0.0]])
+    pts = np.concatenate([on, ring, far]) + T[:3, 3]
+    mask = K.self_mask(m, q, pts, T, margin_m=0.01)
+    assert mask[:len(on)].all()
+    assert not mask[len(on):].any()
+    # organized input keeps its shape; a bad q is refused
+    assert K.self_mask(m, q, pts[None, :4], T, 0.01).shape == (1, 4)
+    with pytest.raises(ValueError):
+        K.self_mask(m, np.zeros(5), pts, T, 0.01)

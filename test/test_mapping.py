@@ -348,7 +348,8 @@ def test_node_yaml_holds_valid_mapper_parameters():
     known = {f.name for f in dataclasses.fields(mp.MapperConfig)} | {
         'robot', 'map_frame', 'base_frame', 'use_coarse_cloud', 'odom_buffer_size',
         'odom_max_extrapolation_s', 'odom_max_speed_m_s', 'odom_max_yaw_rate_deg_s',
-        'coarse_publish_every', 'diagnostics_period_s'}
+        'coarse_publish_every', 'diagnostics_period_s', 'self_filter_margin_m',
+        'self_filter_max_gap_s'}
     assert set(section) <= known, set(section) - known
     cfg = load_config(mp.MapperConfig, path, 'icp_mapper')  # type and range checked
     assert cfg.fine_resolution_m == 0.01
@@ -414,3 +415,38 @@ def test_depth_weights_follow_the_stereo_noise_model():
     wn, wf = w[0], 4 * w[2]
     assert f.heights()[1, 1] == pytest.approx((0.1 * wn + 0.14 * wf) / (wn + wf))
     assert f.heights()[1, 1] < 0.101 and f.s['n'][1, 1] == 5  # the plain mean: 0.132
+
+
+def test_points_seen_through_known_ground_are_not_fused(terrain):
+    """Stereo mismatches far below the terrain. After a first capture, a second one holds a
+    block of true points and a patch of points pushed 30 cm down along their rays (as a
+    too-small disparity does). With the line-of-sight check the cells where the bad points
+    land keep the truth (their rays pass through ground the map has seen); without it those
+    cells sink."""
+    g, scene = terrain
+    results = {}
+    for tol in (0.05, 0.0):
+        m = mp.IcpMapper(dataclasses.replace(CONFIG, line_of_sight_tolerance_m=tol), T_BC)
+        fine, src = m.prepare(cloud_at(scene, T0))
+        m.fuse(fine, src, T0 @ T_BC, T0, 0.0)
+        full = cloud_at(scene, T1)
+        h, w = full.shape[:2]
+        cloud = np.full_like(full, np.nan)
+        cloud[-25:, :] = full[-25:, :]                            # true near-field points
+        patch = np.s_[h // 2:h // 2 + 6, w // 2 - 3:w // 2 + 3]
+        good = full[patch]
+        cam_T = T1 @ T_BC
+        up_cam = cam_T[:3, :3].T @ np.array([0.0, 0.0, 1.0])
+        unit = good / np.linalg.norm(good, axis=-1, keepdims=True)
+        cloud[patch] = good + (0.3 / -(unit @ up_cam))[..., None] * unit
+        bad_world = cloud[patch].reshape(-1, 3) @ cam_T[:3, :3].T + cam_T[:3, 3]
+        seen0 = np.isfinite(m.fine_grid().sample(ELEVATION, bad_world[:, :2]))
+        assert seen0.sum() >= 12                     # the first capture observed most of them
+        fine, src = m.prepare(cloud)
+        m.fuse(fine, src, cam_T, T1, 1.0)
+        got = m.fine_grid().sample(ELEVATION, bad_world[seen0, :2])
+        truth = rc.interpolate_height(g, bad_world[seen0, :2])
+        results[tol] = (float(np.max(np.abs(got - truth))),
+                        int(m.counters['points_below_line_of_sight']))
+    assert results[0.05][0] < 0.005 and results[0.05][1] == 36, results
+    assert results[0.0][0] > 0.03 and results[0.0][1] == 0, results
