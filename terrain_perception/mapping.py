@@ -148,8 +148,8 @@ class MapperConfig:
                                        'their cell\'s mean are dropped (0 = keep all)',
                                        0.0, 1.0)
     line_of_sight_tolerance_m: float = param(
-        0.05, 'a point is not fused when the ray from the camera to it passes more than this '
-        '[m] below a cell the fine map has already observed, in the last 70 % of its length: '
+        0.1, 'a point is not fused when the ray from the camera to it passes more than this '
+        '[m] below a cell the fine map has already observed, in the last half of its length: '
         'the ray could not have got through that ground (a stereo mismatch far below the '
         'terrain); 0 = no check', 0.0, 1.0)
     recenter_distance_m: float = param(0.5, 'move the maps when the robot is this far [m] '
@@ -628,26 +628,38 @@ class FineHeightMap:
         return np.where(good, hp, h)
 
     def rays_below(self, points: np.ndarray, origin: np.ndarray, tolerance_m: float,
-                   fractions: np.ndarray = np.linspace(0.3, 0.95, 8)) -> np.ndarray:
+                   fractions: np.ndarray = np.array([0.5, 0.65, 0.8, 0.95])) -> np.ndarray:
         """Which points ``(N, 3)`` are seen from ``origin`` ``(3,)`` along a ray that passes
-        more than ``tolerance_m`` below the height of an observed cell at one of ``fractions``
-        of the way: a line of sight through known ground, so the point cannot be right."""
+        more than ``tolerance_m`` below the mean height of an observed cell at one of
+        ``fractions`` of the way: a line of sight through known ground, so the point cannot be
+        right. (A point only needs the test if the lowest tested spot of its ray lies below
+        the highest observed cell minus the tolerance.)"""
         pts = np.asarray(points, dtype=np.float64)
         out = np.zeros(len(pts), dtype=bool)
-        if len(pts) == 0 or not np.any(self.s['n'] > 0):
+        seen = self.s['n'] > 0
+        if len(pts) == 0 or not np.any(seen):
             return out
-        h = self.heights()
         o = np.asarray(origin, dtype=np.float64)
+        h = np.where(seen, self.s['mean'], np.nan).reshape(-1)
+        ceiling = float(np.nanmax(h)) - tolerance_m
+        f_hi = float(np.max(fractions))
+        with np.errstate(invalid='ignore'):
+            cand = np.flatnonzero(o[2] + f_hi * (pts[:, 2] - o[2]) < ceiling)
+        if len(cand) == 0:
+            return out
+        d = pts[cand] - o
         r = self.resolution_m
+        nx, ny = self.shape
+        bad = np.zeros(len(cand), dtype=bool)
         for f in fractions:
-            q = o + f * (pts - o)
-            ij = np.floor((q[:, :2] - self.origin_xy) / r).astype(np.int64)
-            inside = ((ij[:, 0] >= 0) & (ij[:, 0] < self.shape[0])
-                      & (ij[:, 1] >= 0) & (ij[:, 1] < self.shape[1]))
-            k = np.flatnonzero(inside)
-            hk = h[ij[k, 0], ij[k, 1]]
+            q = o + f * d
+            i = np.floor((q[:, 0] - self.origin_xy[0]) / r).astype(np.int64)
+            j = np.floor((q[:, 1] - self.origin_xy[1]) / r).astype(np.int64)
+            inside = (i >= 0) & (i < nx) & (j >= 0) & (j < ny)
+            hk = np.take(h, np.where(inside, i * ny + j, 0))
             with np.errstate(invalid='ignore'):
-                out[k] |= q[k, 2] < hk - tolerance_m          # (NaN cells: False)
+                bad |= inside & (q[:, 2] < hk - tolerance_m)      # (NaN cells: False)
+        out[cand] = bad
         return out
 
     def normals_at(self, xy: np.ndarray, half_width_cells: int) -> np.ndarray:
