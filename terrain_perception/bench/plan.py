@@ -35,7 +35,8 @@ from terrain_perception import footsteps as fs
 from terrain_perception.camera import PinholeCamera
 from terrain_perception.config import make_config
 from terrain_perception.grid import ELEVATION, GridMap, crop_or_pad
-from terrain_perception.patches import PatchConfig, find_patches, gravity_in_camera
+from terrain_perception.patches import (PatchConfig, find_patches, gravity_in_camera,
+                                        use_compiled_kernels)
 from terrain_perception.robot_model import REPO_ROOT, load_robot_model
 from terrain_perception.transforms import R_to_quat, make_T
 
@@ -87,6 +88,8 @@ def bench_patches(courses, robot, cfg: PatchConfig, frames: int, seed: int = 0):
     cam = PinholeCamera(640, 480, 525.0, 525.0, 319.5, 239.5)
     rng = np.random.default_rng(seed)
     totals, walls = [], []
+    compiled = use_compiled_kernels(None)       # (the default: numba kernels when available)
+    ref_totals, ref_npatch, ref_same = [], [], 0
     stages, counts = {'stage1_ms': [], 'stage23_ms': [], 'stage4_ms': []}, []
     don, dong, kmin, kmax, npatch = [], [], [], [], []
     for grid in courses:
@@ -109,6 +112,18 @@ def bench_patches(courses, robot, cfg: PatchConfig, frames: int, seed: int = 0):
             p = find_patches(cloud, cam.fx, cam.fy, g, cfg, timing=True)
             totals.append(1e3 * (time.process_time() - t))
             walls.append(1e3 * (time.perf_counter() - tw))
+            if compiled:
+                # the baseline, alternating frame by frame: the numpy reference steps
+                use_compiled_kernels(False)
+                try:
+                    t = time.process_time()
+                    p_ref = find_patches(cloud, cam.fx, cam.fy, g, cfg)
+                    ref_totals.append(1e3 * (time.process_time() - t))
+                finally:
+                    use_compiled_kernels(None)
+                ref_npatch.append(len(p_ref))
+                ref_same += int(len(p_ref) == len(p) and np.allclose(p_ref.vertex, p.vertex,
+                                                                      rtol=1e-9, atol=1e-12))
             for key in stages:
                 stages[key].append(p.timings_ms[key])
             counts.append(p.counts)
@@ -119,7 +134,14 @@ def bench_patches(courses, robot, cfg: PatchConfig, frames: int, seed: int = 0):
             kmax += p.ky.tolist()
     fitted = np.array([c.get('neighbourhoods', 0) for c in counts])
     st4 = np.array(stages['stage4_ms'])
-    out = {
+    if ref_totals:
+        ref = {'patch_ms_per_frame_numpy_ref': float(np.median(ref_totals)),
+               'patches_per_s_numpy_ref': float(np.sum(ref_npatch) / (np.sum(ref_totals)
+                                                                       / 1e3)),
+               'numpy_ref_same_patches_frames': int(ref_same)}
+    else:
+        ref = {}
+    out = {**ref,
         'frames': len(totals),
         'patch_ms_per_frame': float(np.median(totals)),
         'patch_ms_per_frame_p90': float(np.percentile(totals, 90)),
@@ -282,6 +304,14 @@ def run(args) -> dict:
     print(f'patches/s, whole frame (accepted / total frame CPU, the paper\'s measure): '
           f'{P["patches_per_s"]:.0f}; fit stage only (fitted / stage IV CPU): '
           f'{P["patches_fitted_per_s_stage4"]:.0f}')
+    if 'patch_ms_per_frame_numpy_ref' in P:
+        print(f'baseline, the numpy reference steps (TERRAIN_PATCHES_NUMBA=0) on the same '
+              f'frames, alternating: {P["patch_ms_per_frame_numpy_ref"]:.1f} ms/frame, '
+              f'{P["patches_per_s_numpy_ref"]:.0f} patches/s; compiled kernels '
+              f'{P["patches_per_s"] / P["patches_per_s_numpy_ref"]:.2f}x the throughput; same '
+              f'patches on {P["numpy_ref_same_patches_frames"]} of {P["frames"]} frames')
+    else:
+        print('(numba missing: the numpy reference steps ran; no compiled-kernel figures)')
     print(f'(n_s = {patch_cfg.max_seeds} caps a frame at {patch_cfg.max_seeds} patches: '
           f'7000/s whole-frame would need <= {1e3 * patch_cfg.max_seeds / 7000:.1f} ms/frame)')
     scale = patch_cfg.patch_radius_m / 0.10
@@ -325,6 +355,8 @@ def run(args) -> dict:
         'patches_fitted_per_s_stage4': P['patches_fitted_per_s_stage4'],
         'patch_stage_ms_median': P['stage_ms_median'],
         'patch_ms_per_frame': P['patch_ms_per_frame'],
+        **{k: P[k] for k in ('patch_ms_per_frame_numpy_ref', 'patches_per_s_numpy_ref',
+                             'numpy_ref_same_patches_frames') if k in P},
         'replan_ms_median': Q['planner']['replan_ms_median'],
         'true_cost_ratio_vs_greedy': float(ratio),
         'unsafe_foothold_share': Q['planner']['unsafe_share_rough'],
