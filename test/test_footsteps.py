@@ -132,7 +132,9 @@ def test_obstacle_selects_walk_in_crawl_order_and_avoids_edges():
 
 
 def test_flat_but_feet_out_of_position_walks_with_the_stride_rule():
-    cfg = fs.PlannerConfig()
+    # the paper's stride rule alone: our spread limit (tested below) would cap the leading
+    # LF's next stride while the other feet lag
+    cfg = fs.PlannerConfig(max_leg_spread_m=0.0)
     g = _flat()
     planner = fs.FootstepPlanner(ROBOT, cfg)
     assert planner.set_map(g) is None
@@ -299,16 +301,16 @@ def test_map_safety_factor_refuses_slopes_just_below_the_limit():
 
 
 def test_a_foot_left_behind_holds_the_others_back():
-    """A hind foot stranded 0.12 m behind its nominal place: no planned foothold leads the
-    rearmost other foot (both from their nominal places) by more than max_leg_spread_m, and
-    the stranded foot is the one that catches up first."""
+    """A hind foot stranded 2 cm short of the spread limit behind its nominal place: no
+    planned foothold leads the rearmost other foot (both from their nominal places) by more
+    than max_leg_spread_m, and the stranded foot is the one that catches up first."""
     cfg = fs.PlannerConfig(trot_threshold_m=0.0, horizon_steps=8)   # walk, look far ahead
     planner = fs.FootstepPlanner(ROBOT, cfg)
     assert planner.set_map(_flat()) is None
     nom = np.array(ROBOT.nominal_feet)
     feet = nom.copy()
     feet[:, 2] = 0.0
-    feet[fs.RH, 0] -= 0.12
+    feet[fs.RH, 0] -= cfg.max_leg_spread_m - 0.02
     plan = planner.plan(_pose(), np.array([0.6, 0.0]), feet=feet, first_leg=fs.LF)
     assert plan.ok, plan.status_text
     _check_plan_feasible(plan, cfg)
