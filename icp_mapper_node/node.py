@@ -49,7 +49,8 @@ from terrain_perception.config import param
 from terrain_perception.kinematics import self_mask
 from terrain_perception.mapping import IcpMapper, MapperConfig, OdometryGate, PoseBuffer
 from terrain_perception.robot_model import load_robot_model
-from terrain_ros.conversions import (cloud_to_xyz, grid_to_msg, make_header, matrix_to_pose,
+from terrain_ros.conversions import (JointStateError, cloud_to_xyz, grid_to_msg,
+                                     joint_state_to_arrays, make_header, matrix_to_pose,
                                      odometry, pose_stamped, pose_to_matrix, stamp_to_sec,
                                      xyz_to_cloud)
 from terrain_ros.node import Counters, run_node
@@ -165,18 +166,12 @@ class IcpMapperNode(Node):
         self._twist = msg.twist.twist
 
     def _on_joint_state(self, msg: JointState) -> None:
-        names = list(msg.name)
-        missing = [n for n in self.robot.joint_names if n not in names]
-        if missing or len(msg.position) != len(names):
-            self.counters.bump('bad_joint_state', f'joint state lacks {missing} or has '
-                               f'{len(msg.position)} positions for {len(names)} names; ignored')
+        try:
+            q = joint_state_to_arrays(msg, self.robot.joint_names)[0]
+        except JointStateError as exc:
+            self.counters.bump('bad_joint_state', str(exc))
             return
-        q = np.asarray(msg.position, dtype=float)[[names.index(n) for n in
-                                                   self.robot.joint_names]]
         t = stamp_to_sec(msg.header.stamp)
-        if not (np.all(np.isfinite(q)) and np.isfinite(t)):
-            self.counters.bump('bad_joint_state', 'joint state holds NaN/inf; ignored')
-            return
         if self._joints and t < self._joints[-1][0]:
             self._joints.clear()                    # time went back (a replayed bag restarted)
         self._joints.append((t, q.reshape(4, 3)))

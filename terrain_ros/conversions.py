@@ -19,7 +19,7 @@ import numpy as np
 from builtin_interfaces.msg import Time
 from geometry_msgs.msg import Point, Pose, PoseStamped, Quaternion, Transform, Vector3
 from nav_msgs.msg import Odometry
-from sensor_msgs.msg import CameraInfo, Image, PointCloud2, PointField
+from sensor_msgs.msg import CameraInfo, Image, JointState, PointCloud2, PointField
 from std_msgs.msg import Float32MultiArray, Header, MultiArrayDimension
 from stereo_msgs.msg import DisparityImage
 from terrain_msgs.msg import Stance, TerrainGrid, TerrainGridInfo
@@ -294,6 +294,38 @@ def msg_to_stance(msg: Stance) -> Tuple[np.ndarray, Optional[int]]:
     if msg.next_leg not in (0, 1, 2, 3, Stance.LEG_NONE):
         raise ValueError(f'/walking/stance next_leg {msg.next_leg} is not a leg')
     return feet, None if msg.next_leg == Stance.LEG_NONE else int(msg.next_leg)
+
+
+class JointStateError(ValueError):
+    """A JointState that does not give the robot's joints; ``key`` names the problem for a
+    node's counters."""
+
+    def __init__(self, key: str, message: str) -> None:
+        super().__init__(message)
+        self.key = key
+
+
+def joint_state_to_arrays(msg: JointState, joint_names: Sequence[str]
+                          ) -> Tuple[np.ndarray, Optional[np.ndarray], Optional[np.ndarray]]:
+    """``(q, dq, tau)`` in the order of ``joint_names`` (``(12,)`` each). ``dq`` / ``tau`` are
+    None when the message has no velocities / efforts for every name (their NaNs are kept: the
+    caller decides). Raises :class:`JointStateError` for a missing joint, positions that do not
+    match the names, or a NaN/inf position."""
+    names = list(msg.name)
+    missing = [n for n in joint_names if n not in names]
+    if missing:
+        raise JointStateError('joint_state_missing_joint', f'joint state lacks {missing}; '
+                              'ignored')
+    if len(msg.position) != len(names):
+        raise JointStateError('joint_state_bad_length', f'{len(msg.position)} positions for '
+                              f'{len(names)} names; ignored')
+    idx = [names.index(n) for n in joint_names]
+    q = np.asarray(msg.position, dtype=float)[idx]
+    if not np.all(np.isfinite(q)):
+        raise JointStateError('joint_state_nan', 'joint state holds NaN/inf; ignored')
+    dq = np.asarray(msg.velocity, dtype=float)[idx] if len(msg.velocity) == len(names) else None
+    tau = np.asarray(msg.effort, dtype=float)[idx] if len(msg.effort) == len(names) else None
+    return q, dq, tau
 
 
 def pose_to_matrix(pose: Pose) -> np.ndarray:

@@ -177,3 +177,21 @@ def test_stamp_conversion():
     assert cv.stamp_to_sec(cv.sec_to_stamp(12.999999999)) == pytest.approx(12.999999999)
     with pytest.raises(ValueError):
         cv.sec_to_stamp(-1.0)
+
+
+def test_joint_state_to_arrays_orders_joints_and_names_each_problem():
+    from sensor_msgs.msg import JointState
+    from terrain_ros.conversions import JointStateError, joint_state_to_arrays
+    want = ['a', 'b', 'c']
+    msg = JointState(name=['c', 'x', 'a', 'b'], position=[3.0, 9.0, 1.0, 2.0],
+                     velocity=[30.0, 90.0, 10.0, 20.0])
+    q, dq, tau = joint_state_to_arrays(msg, want)
+    np.testing.assert_array_equal(q, [1.0, 2.0, 3.0])
+    np.testing.assert_array_equal(dq, [10.0, 20.0, 30.0])
+    assert tau is None                                     # no efforts in the message
+    for bad, key in ((JointState(name=['a', 'b'], position=[1.0, 2.0]), 'missing_joint'),
+                     (JointState(name=want, position=[1.0, 2.0]), 'bad_length'),
+                     (JointState(name=want, position=[1.0, np.nan, 3.0]), 'nan')):
+        with pytest.raises(JointStateError) as err:
+            joint_state_to_arrays(bad, want)
+        assert err.value.key == f'joint_state_{key}'

@@ -48,8 +48,8 @@ from terrain_perception.config import param
 from terrain_perception.controller import WalkingConfig, WalkingController
 from terrain_perception.robot_model import load_robot_model
 from terrain_perception.transforms import make_T, quat_to_R, rot_z, transform_points
-from terrain_ros.conversions import (make_header, msg_to_grid, odometry, pose_to_matrix,
-                                     sec_to_stamp)
+from terrain_ros.conversions import (JointStateError, joint_state_to_arrays, make_header,
+                                     msg_to_grid, odometry, pose_to_matrix, sec_to_stamp)
 from terrain_ros.node import Counters, run_node
 from terrain_ros.params import declare_config
 from terrain_ros.qos import LATCHED_QOS, RELIABLE_QOS, SENSOR_QOS
@@ -124,30 +124,15 @@ class WalkingControllerNode(Node):
 
     # ------------------------------------------------------------------ inputs
     def _on_joint_state(self, msg: JointState) -> None:
-        names = list(msg.name)
         try:
-            idx = [names.index(n) for n in self.model.joint_names]
-        except ValueError:
-            missing = [n for n in self.model.joint_names if n not in names]
-            self.counters.bump('joint_state_missing_joint',
-                               f'joint state lacks {missing}; ignored')
-            return
-        if len(msg.position) != len(names):
-            self.counters.bump('joint_state_bad_length',
-                               f'{len(msg.position)} positions for {len(names)} names; ignored')
-            return
-        q = np.asarray(msg.position, dtype=float)[idx]
-        if not np.all(np.isfinite(q)):
-            self.counters.bump('joint_state_nan', 'joint state holds NaN/inf; ignored')
+            q, dq, tau = joint_state_to_arrays(msg, self.model.joint_names)
+        except JointStateError as exc:
+            self.counters.bump(exc.key, str(exc))
             return
         self._q = q
-        if len(msg.velocity) == len(names):
-            dq = np.asarray(msg.velocity, dtype=float)[idx]
+        if dq is not None:
             self._dq = dq if np.all(np.isfinite(dq)) else None
-        self._tau = None
-        if len(msg.effort) == len(names):
-            tau = np.asarray(msg.effort, dtype=float)[idx]
-            self._tau = tau if np.all(np.isfinite(tau)) else None
+        self._tau = tau if tau is not None and np.all(np.isfinite(tau)) else None
 
     def _on_imu(self, msg: Imu) -> None:
         o = msg.orientation
