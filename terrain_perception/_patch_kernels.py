@@ -77,6 +77,7 @@ def median_2x2_scaled(cloud, scale, Dx, Dy, Dz):
     valid points (NaN if none). As ``patches._median_2x2``: blocks of four valid points take
     (max of the column-pair minima + min of the column-pair maxima) / 2 in float32."""
     h2, w2 = Dz.shape
+    out = (Dx, Dy, Dz)
     half = np.float32(0.5)
     v = np.empty(4, np.float32)
     valid = np.empty(4, np.bool_)
@@ -108,12 +109,7 @@ def median_2x2_scaled(cloud, scale, Dx, Dy, Dz):
                     hi_b = d if c < d else c
                     m = (lo_t if lo_t > lo_b else lo_b) + (hi_t if hi_t < hi_b else hi_b)
                     m = m * half
-                    if k == 0:
-                        Dx[i, j] = m
-                    elif k == 1:
-                        Dy[i, j] = m
-                    else:
-                        Dz[i, j] = m
+                    out[k][i, j] = m
             else:
                 valid[0] = math.isfinite(z00)
                 valid[1] = math.isfinite(z10)
@@ -125,12 +121,7 @@ def median_2x2_scaled(cloud, scale, Dx, Dy, Dz):
                     v[2] = cloud[r0, c1, k] * s01
                     v[3] = cloud[r1, c1, k] * s11
                     m = _median_of_valid(v, valid, buf)
-                    if k == 0:
-                        Dx[i, j] = m
-                    elif k == 1:
-                        Dy[i, j] = m
-                    else:
-                        Dz[i, j] = m
+                    out[k][i, j] = m
 
 
 # --------------------------------------------------------------------------------------------
