@@ -43,7 +43,7 @@ from typing import Dict, List, Optional
 
 import yaml
 
-from terrain_ros.env import CONFIG_DIR, safe_env
+from terrain_ros.env import CONFIG_DIR, node_env
 from terrain_ros.tools.common import ToolError, fail
 
 PROG = 'terrain-launch'
@@ -117,7 +117,7 @@ def load_launch_file(path: Path, cli_args: Dict[str, str]) -> List[NodeSpec]:
         raise ToolError(f'unknown launch argument(s) {sorted(unknown)}; '
                         f'{path.name} declares {sorted(declared)}')
     args = {**declared, **cli_args}
-    base_env = safe_env(dict(os.environ))
+    base_env = node_env(dict(os.environ))
     base_env.update({k: str(v) for k, v in _substitute(data.get('env') or {}, args).items()})
     nodes = data.get('nodes') or []
     if not nodes:
