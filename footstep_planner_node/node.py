@@ -77,6 +77,8 @@ class FootstepNodeConfig:
                              'real feet and next leg) instead of the nominal stance')
     stance_max_age_s: float = param(30.0, 'ignore a stance older than this (vs the map '
                                     'stamp) [s]', 0.0, 1e6)
+    goal_tolerance_m: float = param(0.01, 'a /goal_pose within this of the current goal does '
+                                    'not trigger a replan (re-sent goals) [m]', 0.0, 1e3)
     cost_grid_max: float = param(1.0, 'cost shown as 100 in /map/cost_grid (higher is '
                                  'clipped)', 1e-9, 1e9)
     diagnostics_period_s: float = param(1.0, 'period of the counters message [s]', 0.05, 3600.0)
@@ -172,6 +174,7 @@ class FootstepPlannerNode(Node):
         self.patches_map: Optional[PatchSet] = None
         self.patches_stamp: float = -np.inf
         self.last_plan: Optional[fs.FootstepPlan] = None
+        self.goals_repeated = 0
 
         self.pub_plan = self.create_publisher(FootstepPlanMsg, '/footstep_plan', LATCHED_QOS)
         self.pub_plan_markers = self.create_publisher(MarkerArray, '/footstep_plan/markers',
@@ -250,7 +253,15 @@ class FootstepPlannerNode(Node):
         if not np.all(np.isfinite(xy)):
             self.counters.bump('bad_goal', f'/goal_pose has a non-finite position {xy}')
             return
+        # A goal sent again (volatile topics are often re-sent for late joiners) changes no
+        # plan: replanning on it cost ~100 ms of the planner's CPU each time and delayed the
+        # plan of the next map. The next map plans towards it anyway.
+        same = (self.goal_xy is not None and
+                float(np.linalg.norm(xy - self.goal_xy)) <= self.node_cfg.goal_tolerance_m)
         self.goal_xy = xy
+        if same:
+            self.goals_repeated += 1
+            return
         if self.grid is not None:
             self.replan()
 

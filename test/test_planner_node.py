@@ -128,6 +128,20 @@ def test_map_pose_goal_give_the_core_plan_and_a_cost_grid(ros_context, executor)
     assert all(f.cost < 0.1 for f in plan.footsteps)
     assert spin_until(executor, lambda: len(h.costs) > 1, 5.0)
     assert max(h.costs[-1].data) == 100
+    # The same goal re-sent (the demo re-sends it every 2 s for late joiners): no replan.
+    n_plans = len(h.plans)
+    for _ in range(3):
+        h.pub_goal.publish(goal)
+    assert spin_until(executor, lambda: h.node.goals_repeated == 3, 5.0)
+    executor.spin_once(timeout_sec=0.2)
+    assert len(h.plans) == n_plans
+    # A goal moved by more than goal_tolerance_m replans at once, towards it.
+    goal.pose.position.y = -0.1
+    h.pub_goal.publish(goal)
+    assert spin_until(executor, lambda: len(h.plans) > n_plans, 5.0)
+    want = fs.plan_footsteps(rough, ROBOT, _pose_T(), np.array([0.5, -0.1]))
+    got = np.array([[f.position.x, f.position.y, f.position.z] for f in h.plans[-1].footsteps])
+    np.testing.assert_allclose(got, [s.position for s in want.footsteps], atol=1e-6)
 
 
 
