@@ -74,6 +74,7 @@ class RunData:
     map_fine: Optional[GridMap] = None
     map_filled: Optional[GridMap] = None
     latencies_ms: List[float] = field(default_factory=list)
+    latency_stages_ms: Dict[str, List[float]] = field(default_factory=dict)
     counts: Dict[str, int] = field(default_factory=dict)
     nodes: Dict[str, dict] = field(default_factory=dict)
     sim_time_s: float = 0.0
@@ -389,6 +390,11 @@ def compute_summary(d: RunData, model=None, cost_cfg: CostConfig = CostConfig())
         s['capture_to_plan_ms_median'] = round(float(np.median(lat)), 1)
         s['capture_to_plan_ms_p95'] = round(float(np.percentile(lat, 95)), 1)
         s['capture_to_plan_ms_all'] = [round(float(v), 1) for v in lat]
+        # where the wall time goes: per node, first arrival on its output minus on its input
+        s['latency_stages_ms'] = {
+            name: {'median': round(float(np.median(v)), 1),
+                   'p95': round(float(np.percentile(v, 95)), 1), 'captures': len(v)}
+            for name, v in d.latency_stages_ms.items() if len(v)}
     else:
         s['capture_to_plan_ms_median'] = None
         missing['capture_to_plan_ms_median'] = 'no plan matched a captured image stamp'
@@ -675,7 +681,10 @@ def format_summary(s: dict) -> str:
         f'({s.get("foothold_cost_source", "-")}); plans {s.get("plans_ok")}/'
         f'{s.get("plans_received")} with steps',
         f'  latency        capture-to-plan median '
-        f'{f("capture_to_plan_ms_median", "{:.0f}", " ms")}',
+        f'{f("capture_to_plan_ms_median", "{:.0f}", " ms")}'
+        + (' (' + ', '.join(f'{k} {v["median"]:.0f}'
+                            for k, v in s['latency_stages_ms'].items()) + ')'
+           if s.get('latency_stages_ms') else ''),
     ]
     bad = {k: v for k, v in s.get('nodes', {}).items() if v.get('state') != 'ran'}
     if not s.get('nodes'):

@@ -321,6 +321,25 @@ def fast_executor(context):
         return SingleThreadedExecutor(context=context)
 
 
+#: The pipeline's outputs in order; a capture's stamp travels along them (stereo -> ICP mapper
+#: -> terrain fill -> footstep planner).
+STAGE_TOPICS = ('/stereo/points', '/map/fine', '/map/filled', '/footstep_plan')
+STAGE_NAMES = ('stereo', 'icp_mapper', 'terrain_fill', 'footstep_planner')
+
+
+def stage_latencies(image_wall: Dict[tuple, float],
+                    stage_wall: Dict[str, Dict[tuple, float]]) -> Dict[str, List[float]]:
+    """Wall ms each node added per capture: first arrival of the stamp on its output minus on
+    its input (the left image for the stereo node), over the captures that reached it."""
+    out: Dict[str, List[float]] = {}
+    prev = image_wall
+    for name, topic in zip(STAGE_NAMES, STAGE_TOPICS):
+        cur = stage_wall.get(topic, {})
+        out[name] = [1000.0 * (cur[k] - prev[k]) for k in cur if k in prev]
+        prev = cur
+    return out
+
+
 def _cdr_stamp(data: bytes) -> tuple:
     """(sec, nanosec) of a serialized message that starts with a std_msgs/Header."""
     return struct.unpack_from('<iI', data, 4)
@@ -363,6 +382,8 @@ class Monitor:
         self.filled_msg = None
         self.image_wall: Dict[tuple, float] = {}
         self.latencies_ms: List[float] = []
+        # wall time of the first arrival of each capture's stamp on the pipeline's outputs
+        self.stage_wall: Dict[str, Dict[tuple, float]] = {t: {} for t in STAGE_TOPICS}
         self.counts: Dict[str, int] = {}
         self._joint_index = None
         self._running = True
@@ -390,8 +411,7 @@ class Monitor:
         sub(TerrainGrid, '/map/fine', self._on_fine, LATCHED_QOS)
         self.blind_pub = (n.create_publisher(TerrainGrid, '/map/blind', LATCHED_QOS)
                           if self.blind else None)
-        sub(TerrainGrid, '/map/filled', lambda m: self._keep('filled_msg', m, '/map/filled'),
-            LATCHED_QOS)
+        sub(TerrainGrid, '/map/filled', self._on_filled, LATCHED_QOS)
         sub(PoseStamped, '/icp/pose', self._on_icp, RELIABLE_QOS)
         sub(PoseStamped, '/icp/correction', self._on_correction, LATCHED_QOS)
         sub(Odometry, '/odom/dead_reckoning', self._on_dr, RELIABLE_QOS)
@@ -401,8 +421,7 @@ class Monitor:
             RELIABLE_QOS)
         # Raw (undeserialized) for big messages: only their stamps and counts are needed.
         sub(Image, '/stereo/left/image_rect', self._on_image, SENSOR_QOS, raw=True)
-        sub(PointCloud2, '/stereo/points', lambda b: self._count('/stereo/points'),
-            SENSOR_QOS, raw=True)
+        sub(PointCloud2, '/stereo/points', self._on_points, SENSOR_QOS, raw=True)
         self.goal_pub = n.create_publisher(PoseStamped, '/goal_pose', RELIABLE_QOS)
         if self.publish_goal:
             n.create_timer(2.0, self._safe(self._publish_goal))
@@ -446,8 +465,27 @@ class Monitor:
         setattr(self, attr, msg)
         self._count(topic)
 
+    def _mark(self, topic: str, key: tuple) -> bool:
+        """Note the first arrival of ``key`` on ``topic``; False when it came before."""
+        seen = self.stage_wall[topic]
+        if key in seen:
+            return False
+        seen[key] = time.monotonic()
+        if len(seen) > 200:
+            for k in list(seen)[:100]:
+                del seen[k]
+        return True
+
+    def _on_points(self, data: bytes) -> None:
+        self._count('/stereo/points')
+        try:
+            self._mark('/stereo/points', _cdr_stamp(data))
+        except struct.error:
+            pass
+
     def _on_fine(self, msg) -> None:
         self._keep('fine_msg', msg, '/map/fine')
+        self._mark('/map/fine', (int(msg.header.stamp.sec), int(msg.header.stamp.nanosec)))
         if self.blind_pub is not None:
             # Blind variant: the same grid and stamp, flat and fully "observed".
             from terrain_perception.grid import GridMap
@@ -458,6 +496,10 @@ class Monitor:
                            {'elevation': zeros, 'observed': zeros + 1.0, 'filled': zeros,
                             'cost': zeros}, frame_id=g.frame_id, stamp_s=g.stamp_s)
             self.blind_pub.publish(grid_to_msg(flat))
+
+    def _on_filled(self, msg) -> None:
+        self._keep('filled_msg', msg, '/map/filled')
+        self._mark('/map/filled', (int(msg.header.stamp.sec), int(msg.header.stamp.nanosec)))
 
     def _on_clock(self, msg) -> None:
         from terrain_ros.conversions import stamp_to_sec
@@ -546,7 +588,9 @@ class Monitor:
         self._count('/footstep_plan')
         now = time.monotonic()
         key = (int(msg.header.stamp.sec), int(msg.header.stamp.nanosec))
-        if key in self.image_wall:
+        # Capture-to-plan: the FIRST plan made on the map of a capture. Later plans with the
+        # same stamp (a goal or parameter change replans on the same map) are not latency.
+        if self._mark('/footstep_plan', key) and key in self.image_wall:
             self.latencies_ms.append(1000.0 * (now - self.image_wall[key]))
         steps = np.array([[f.leg, f.position.x, f.position.y, f.position.z, f.cost]
                           for f in msg.footsteps], dtype=np.float64).reshape(-1, 5)
@@ -612,6 +656,7 @@ class Monitor:
                 except ValueError as exc:
                     d.notes.append(f'{attr}: last message unusable: {exc}')
         d.latencies_ms = list(self.latencies_ms)
+        d.latency_stages_ms = stage_latencies(self.image_wall, self.stage_wall)
         d.counts = dict(self.counts)
         return d
 

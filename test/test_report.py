@@ -1,0 +1,40 @@
+"""The demo report's latency figures: per-capture stamps in, per-node wall times out."""
+
+from __future__ import annotations
+
+import pytest
+
+from terrain_ros.report import CourseInfo, RunData, compute_summary, format_summary
+from terrain_ros.tools.demo import STAGE_NAMES, STAGE_TOPICS, stage_latencies
+
+
+def _walls():
+    # captures 1..3; capture 3 never reached the planner, capture 2 skipped by the mapper
+    image = {(1, 0): 10.0, (2, 0): 20.0, (3, 0): 30.0}
+    stages = {'/stereo/points': {(1, 0): 10.1, (2, 0): 20.2, (3, 0): 30.1},
+              '/map/fine': {(1, 0): 10.4, (3, 0): 30.5},
+              '/map/filled': {(1, 0): 10.5, (3, 0): 30.6},
+              '/footstep_plan': {(1, 0): 10.8}}
+    return image, stages
+
+
+def test_stage_latencies_follow_each_stamp_from_node_to_node():
+    assert STAGE_TOPICS[-1] == '/footstep_plan' and len(STAGE_NAMES) == len(STAGE_TOPICS)
+    lat = stage_latencies(*_walls())
+    assert list(lat) == list(STAGE_NAMES)
+    assert lat['stereo'] == pytest.approx([100.0, 200.0, 100.0])
+    assert lat['icp_mapper'] == pytest.approx([300.0, 400.0])     # capture 2 never fused
+    assert lat['terrain_fill'] == pytest.approx([100.0, 100.0])
+    assert lat['footstep_planner'] == pytest.approx([300.0])
+
+
+def test_summary_reports_the_per_node_latency_with_the_total():
+    d = RunData(CourseInfo('rocks-6cm', 0, 0.4, 1.0, 1.75, 2.15), 'littledog')
+    d.latencies_ms = [800.0]
+    d.latency_stages_ms = stage_latencies(*_walls())
+    s = compute_summary(d)
+    assert s['capture_to_plan_ms_median'] == 800.0
+    st = s['latency_stages_ms']
+    assert st['icp_mapper'] == {'median': 350.0, 'p95': pytest.approx(395.0), 'captures': 2}
+    assert st['footstep_planner']['captures'] == 1
+    assert 'icp_mapper 350' in format_summary(s)
