@@ -1,0 +1,170 @@
+"""Pipeline CPU: per-node CPU per capture on a recorded bag, library thread pools vs one thread.
+
+``terrain-bench pipeline --bag DIR [--captures N]`` runs the profile tool
+(``python -m terrain_ros.tools.pipeline_profile``: the stereo node, ICP mapper, terrain fill and
+footstep planner in one process, the bag's recorded inputs replayed into their callbacks, CPU
+per callback from ``time.process_time()``; see that module) twice, in subprocesses, on the same
+bag and captures:
+
+* ``default_pools`` (the baseline): ``OMP_NUM_THREADS``, ``OPENBLAS_NUM_THREADS`` and
+  ``MKL_NUM_THREADS`` removed from the environment, i.e. every library's default pool (one
+  worker per core);
+* ``node_env``: the three = 1, what ``terrain-launch`` gives node processes
+  (``terrain_ros.env.node_env``).
+
+It prints both tables, then the per-stage medians side by side and the ratios baseline / node
+env of the ICP mapper's update, the contact patches and all CPU per capture. Without ``--bag``
+it first records one with a short ``terrain-demo`` run (default course, ``--max-sim-time``
+``--sim-time``, into ``runs/bench/pipeline-demo``; an existing bag there is reused) and says
+so. ``--quick``: 15 captures. The suite only starts processes and reads their JSON; it imports
+nothing from ROS.
+
+JSON: ``variants`` (name -> ``threads``, ``stage_median_ms`` per stage, ``cpu_ms_per_capture``,
+``chain_cpu_ms_median_sum``, ``chain_cpu_ms_per_capture_median``), ``icp_cpu_ratio``,
+``patches_cpu_ratio``, ``total_cpu_ratio``, ``chain_cpu_ratio`` (baseline / node env),
+``chain_cpu_ms_median`` (node env: the sum of the chain's medians), ``bag``, ``captures``,
+``recorded_bag``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+from typing import Dict, Optional
+
+# The pools terrain_ros.env.node_env sets to one thread (NODE_THREAD_DEFAULTS; the core may not
+# import terrain_ros, test_pipeline_profile checks that the two lists agree).
+THREAD_VARS = ('OMP_NUM_THREADS', 'OPENBLAS_NUM_THREADS', 'MKL_NUM_THREADS')
+VARIANTS = ('default_pools', 'node_env')
+VARIANT_TITLES = {'default_pools': 'baseline: the libraries\' default thread pools '
+                                   '(OMP/OPENBLAS/MKL_NUM_THREADS unset)',
+                  'node_env': 'node env: OMP/OPENBLAS/MKL_NUM_THREADS=1 (terrain-launch)'}
+STAGES = ('stereo', 'icp', 'fill', 'plan_map', 'patches', 'plan_goal')
+DEMO_RUN_DIR = Path('runs') / 'bench' / 'pipeline-demo'
+DEFAULT_DOMAIN = '47'
+TOOL = 'terrain_ros.tools.pipeline_profile'
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument('--bag', type=Path, default=None,
+                   help='rosbag2 directory of a terrain-demo run (default: record one)')
+    p.add_argument('--captures', type=int, default=None,
+                   help='captures counted per variant (default 60; --quick 15)')
+    p.add_argument('--sim-time', type=float, default=25.0,
+                   help='without --bag: simulated seconds of the recording run (default 25)')
+    p.add_argument('--run-dir', type=Path, default=DEMO_RUN_DIR,
+                   help=f'without --bag: run directory of the recording (default {DEMO_RUN_DIR})')
+
+
+def _env(variant: Optional[str] = None) -> Dict[str, str]:
+    env = dict(os.environ)
+    env.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
+    env.setdefault('ROS_DOMAIN_ID', DEFAULT_DOMAIN)
+    if variant == 'default_pools':
+        for k in THREAD_VARS:
+            env.pop(k, None)
+    elif variant == 'node_env':
+        env.update({k: '1' for k in THREAD_VARS})
+    return env
+
+
+def record_bag(run_dir: Path, sim_time: float) -> Path:
+    """A bag from a short terrain-demo run (reused when ``run_dir`` already holds one)."""
+    bag = run_dir / 'bag'
+    if (bag / 'metadata.yaml').is_file():
+        print(f'no --bag: reusing the bag of an earlier recording run, {bag}', flush=True)
+        return bag
+    if run_dir.exists() and any(run_dir.iterdir()):
+        raise ValueError(f'{run_dir} exists without a complete bag (an interrupted recording?); '
+                         'remove it or pass --bag')
+    env = _env()
+    cmd = [str(Path(sys.executable).parent / 'terrain-demo'), '--run-dir', str(run_dir),
+           '--max-sim-time', str(sim_time), '--timeout', '900', '--quiet']
+    print(f'no --bag: recording one first (ROS_DOMAIN_ID={env["ROS_DOMAIN_ID"]}): '
+          f'{" ".join(["terrain-demo"] + cmd[1:])}', flush=True)
+    proc = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=1200)
+    if proc.returncode != 0 or not (bag / 'metadata.yaml').is_file():
+        tail = ' | '.join((proc.stdout + proc.stderr).strip().splitlines()[-3:])
+        raise ValueError(f'the recording run failed (exit code {proc.returncode}): {tail}')
+    print(f'recorded {bag}', flush=True)
+    return bag
+
+
+def profile(bag: Path, captures: int, variant: str) -> dict:
+    """Run the profile tool in a subprocess with ``variant``'s environment; its JSON figures."""
+    with tempfile.TemporaryDirectory(prefix='bench-pipeline-') as tmp:
+        out = Path(tmp) / 'profile.json'
+        cmd = [sys.executable, '-m', TOOL, str(bag), '--captures', str(captures),
+               '--json', str(out)]
+        proc = subprocess.run(cmd, capture_output=True, text=True, env=_env(variant),
+                              timeout=3600)
+        if proc.returncode != 0 or not out.is_file():
+            lines = proc.stderr.strip().splitlines() or proc.stdout.strip().splitlines()
+            raise ValueError(f'the profile ({variant}) failed with exit code '
+                             f'{proc.returncode}: {lines[-1] if lines else "no output"}')
+        result = json.loads(out.read_text())
+    print(f'\n=== {VARIANT_TITLES[variant]}', flush=True)
+    print('\n'.join(ln for ln in proc.stdout.rstrip().splitlines()
+                    if not ln.startswith('pipeline_profile: figures written')), flush=True)
+    return result
+
+
+def _ratio(a, b) -> Optional[float]:
+    return round(a / b, 3) if a is not None and b else None
+
+
+def run(args) -> dict:
+    captures = args.captures if args.captures is not None else (15 if args.quick else 60)
+    if captures <= 0:
+        raise ValueError('--captures must be positive')
+    recorded = args.bag is None
+    bag = record_bag(args.run_dir, args.sim_time) if recorded else args.bag
+    if not bag.exists():
+        raise FileNotFoundError(f'bag {str(bag)!r} does not exist')
+    res = {v: profile(bag, captures, v) for v in VARIANTS}
+    variants = {}
+    for v, r in res.items():
+        variants[v] = {
+            'threads': r['threads'],
+            'stage_median_ms': {s: r['stages'][s]['median_ms'] for s in STAGES},
+            'stage_p90_ms': {s: r['stages'][s]['p90_ms'] for s in STAGES},
+            'cpu_ms_per_capture': r['cpu_ms_per_capture'],
+            'chain_cpu_ms_median_sum': r['chain_cpu_ms_median_sum'],
+            'chain_cpu_ms_per_capture_median': r['chain_cpu_ms_per_capture_median'],
+            'captures': r['captures'], 'wall_s': r['wall_s'], 'loadavg_1min': r['loadavg_1min'],
+        }
+    b, n = variants['default_pools'], variants['node_env']
+    print('\n=== per capture, baseline / node env (CPU ms, medians)')
+    print(f'{"stage":22s} {"default pools":>14s} {"node env":>10s} {"ratio":>7s}')
+    rows = [(s, b['stage_median_ms'][s], n['stage_median_ms'][s]) for s in STAGES]
+    rows += [('CPU per capture (all)', b['cpu_ms_per_capture'], n['cpu_ms_per_capture']),
+             ('chain, sum of medians', b['chain_cpu_ms_median_sum'],
+              n['chain_cpu_ms_median_sum'])]
+    for name, x, y in rows:
+        r = _ratio(x, y)
+        print(f'{name:22s} {"-" if x is None else f"{x:.1f}":>14s} '
+              f'{"-" if y is None else f"{y:.1f}":>10s} {"-" if r is None else f"{r:.2f}":>7s}')
+    out = {
+        'bag': str(bag), 'recorded_bag': recorded, 'captures': captures,
+        'variants': variants,
+        'icp_cpu_ratio': _ratio(b['stage_median_ms']['icp'], n['stage_median_ms']['icp']),
+        'patches_cpu_ratio': _ratio(b['stage_median_ms']['patches'],
+                                    n['stage_median_ms']['patches']),
+        'total_cpu_ratio': _ratio(b['cpu_ms_per_capture'], n['cpu_ms_per_capture']),
+        'chain_cpu_ratio': _ratio(b['chain_cpu_ms_median_sum'], n['chain_cpu_ms_median_sum']),
+        'chain_cpu_ms_median': n['chain_cpu_ms_median_sum'],
+        'chain_cpu_ms_median_default_pools': b['chain_cpu_ms_median_sum'],
+        'cpu_ms_per_capture': n['cpu_ms_per_capture'],
+        'cpu_ms_per_capture_default_pools': b['cpu_ms_per_capture'],
+        'icp_cpu_ms_median': n['stage_median_ms']['icp'],
+        'icp_cpu_ms_median_default_pools': b['stage_median_ms']['icp'],
+    }
+    print(f'ICP update CPU ratio (baseline / node env) {out["icp_cpu_ratio"]}, patches '
+          f'{out["patches_cpu_ratio"]}, all CPU per capture {out["total_cpu_ratio"]}'
+          + (f'; bag recorded by this run: {bag}' if recorded else ''))
+    return out
