@@ -10,9 +10,10 @@
 :func:`node_env` adds, for the node processes a launcher starts, one worker thread per
 OpenMP/BLAS pool (``OMP_NUM_THREADS``, ``OPENBLAS_NUM_THREADS``, ``MKL_NUM_THREADS`` = 1 unless
 set): the graph is already parallel across processes, and a pool's spinning workers take the
-cores from the other nodes and the simulator (``terrain-bench pipeline`` measures it: the ICP
-mapper's update costs about half the CPU with one OpenMP thread). Export a larger value to give
-a node more threads on a bigger computer.
+cores from the other nodes and the simulator. ``terrain-bench pipeline`` measures it on a
+recorded run: with one thread per pool the ICP mapper's update took 1.29x less CPU and a
+capture's whole pipeline 1.18x less (docs/BENCHMARKS.md). Export a larger value to give a node
+more threads on a bigger computer.
 """
 
 from __future__ import annotations
