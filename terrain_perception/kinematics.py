@@ -16,7 +16,10 @@ Positions are foot-sphere centres in ``base_link`` [m]; angles [rad]. Joint arra
 
 from __future__ import annotations
 
+import logging
+import os
 from dataclasses import dataclass
+from typing import Optional
 
 import numpy as np
 
@@ -24,6 +27,37 @@ from terrain_perception.robot_model import LEG_NAMES, LEG_SIDE, RobotModel
 
 _EPS_REACH = 1e-9    # [m] tolerance on reach checks (numerical round-off only)
 _EPS_LIMIT = 1e-9    # [rad] tolerance on joint limits
+_LOG = logging.getLogger(__name__)
+
+
+def _load_ik_kernel():
+    """The compiled IK (terrain_perception._ik_kernel), or None for the numpy code
+    (``TERRAIN_IK_NUMBA=0``, or numba missing: logged once)."""
+    if os.environ.get('TERRAIN_IK_NUMBA', '1').strip().lower() in ('0', 'false', 'no', 'off'):
+        return None
+    try:
+        from terrain_perception import _ik_kernel
+    except ImportError as e:
+        _LOG.warning('leg IK: numba is not available (%s); using the numpy code', e)
+        return None
+    return _ik_kernel
+
+
+_ik = _load_ik_kernel()
+
+
+def use_compiled_ik(enabled: Optional[bool] = True) -> bool:
+    """Select the compiled IK (``True``), the numpy code (``False``) or the default (``None``)
+    for the following :func:`solve_ik` calls, process-wide; returns whether compiled is on."""
+    global _ik
+    if enabled is None:
+        _ik = _load_ik_kernel()
+    elif enabled:
+        from terrain_perception import _ik_kernel
+        _ik = _ik_kernel
+    else:
+        _ik = None
+    return _ik is not None
 
 
 def _leg_arrays(model: RobotModel, q_or_p: np.ndarray, what: str) -> np.ndarray:
@@ -114,6 +148,8 @@ def solve_ik(model: RobotModel, feet_base: np.ndarray, explain: bool = True) -> 
     (``explain=False``: no reasons, for searches that only need ``ok``).
     """
     p = _leg_arrays(model, feet_base, 'foot targets')
+    if _ik is not None:
+        return _solve_ik_compiled(model, p, explain)
     l1, l2 = model.thigh_length_m, model.shank_length_m
     r = p - model.hip_offsets
     x, y, z = r[..., 0], r[..., 1], r[..., 2]
@@ -158,6 +194,50 @@ def solve_ik(model: RobotModel, feet_base: np.ndarray, explain: bool = True) -> 
             reasons.append(f'{where}leg {LEG_NAMES[leg]}: {why} '
                            f'(target {np.round(p.reshape(-1, 4, 3)[idx, leg], 4).tolist()} m)')
     return IKResult(q=q, ok=ok, reasons=tuple(reasons))
+
+
+_IK_REASONS = {1: 'target inside the abduction offset circle',
+               2: 'target beyond the leg length',
+               3: 'target closer than |thigh - shank|',
+               4: 'solution outside the joint limits'}
+
+
+_ik_constants_cache: dict = {}
+
+
+def _ik_constants(model: RobotModel) -> tuple:
+    """The kernel's per-model arrays (models are frozen: computed once per model object)."""
+    hit = _ik_constants_cache.get(id(model))
+    if hit is not None and hit[0] is model:
+        return hit[1]
+    f8 = np.float64
+    consts = (np.ascontiguousarray(model.hip_offsets, f8),
+              np.ascontiguousarray(LEG_SIDE * model.abduction_offset_m, f8),
+              float(model.thigh_length_m), float(model.shank_length_m),
+              np.ascontiguousarray(np.broadcast_to(model.knee_sign, (4,)), f8),
+              np.ascontiguousarray(np.broadcast_to(model.joint_limits, (4, 3, 2)), f8),
+              _EPS_REACH, _EPS_LIMIT)
+    if len(_ik_constants_cache) > 64:
+        _ik_constants_cache.clear()
+    _ik_constants_cache[id(model)] = (model, consts)
+    return consts
+
+
+def _solve_ik_compiled(model: RobotModel, p: np.ndarray, explain: bool) -> IKResult:
+    flat = np.ascontiguousarray(p.reshape(-1, 4, 3))
+    n = flat.shape[0]
+    q = np.empty((n, 4, 3))
+    code = np.empty((n, 4), np.int8)
+    _ik.solve_legs(flat, *_ik_constants(model), q, code)
+    ok = code == 0
+    reasons = []
+    if explain and not ok.all():
+        for idx, leg in zip(*np.nonzero(~ok)):
+            where = f'pose {idx} ' if n > 1 else ''
+            reasons.append(f'{where}leg {LEG_NAMES[leg]}: {_IK_REASONS[int(code[idx, leg])]} '
+                           f'(target {np.round(flat[idx, leg], 4).tolist()} m)')
+    return IKResult(q=q.reshape(p.shape), ok=ok.reshape(p.shape[:-1]),
+                    reasons=tuple(reasons))
 
 
 def inverse(model: RobotModel, feet_base: np.ndarray) -> np.ndarray:

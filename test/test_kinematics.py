@@ -10,6 +10,14 @@ from terrain_perception.robot_model import load_robot_model
 ROBOTS = ('littledog', 'frog')
 
 
+@pytest.fixture(params=['compiled', 'numpy'])
+def ik_impl(request):
+    """Run a test with the compiled IK kernel and with the numpy code."""
+    assert K.use_compiled_ik(request.param == 'compiled') == (request.param == 'compiled')
+    yield request.param
+    K.use_compiled_ik(None)
+
+
 def _reachable_joint_samples(m, n, rng):
     """Joint angles within the limits on the IK's branch (knee direction of the profile,
     foot below the hip in the leg plane)."""
@@ -24,7 +32,7 @@ def _reachable_joint_samples(m, n, rng):
 
 
 @pytest.mark.parametrize('name', ROBOTS)
-def test_ik_round_trip_over_workspace(name):
+def test_ik_round_trip_over_workspace(name, ik_impl):
     m = load_robot_model(name)
     rng = np.random.default_rng(7)
     q = _reachable_joint_samples(m, 20000, rng)
@@ -38,7 +46,7 @@ def test_ik_round_trip_over_workspace(name):
 
 
 @pytest.mark.parametrize('name', ROBOTS)
-def test_unreachable_targets_are_reported_not_clamped(name):
+def test_unreachable_targets_are_reported_not_clamped(name, ik_impl):
     m = load_robot_model(name)
     feet = K.forward(m, K.standing_joint_angles(m))
     far = feet.copy()
@@ -63,6 +71,47 @@ def test_unreachable_targets_are_reported_not_clamped(name):
     res = K.solve_ik(m, np.stack([feet, far]))
     assert res.ok.tolist() == [[True] * 4, [True, False, True, True]]
     assert res.reasons[0].startswith('pose 1 leg RF')
+
+
+@pytest.mark.parametrize('name', ROBOTS)
+def test_compiled_ik_is_the_numpy_ik_to_the_bit(name):
+    # Targets all over and beyond the workspace (every failure kind), NaN targets, a zero
+    # leg-plane radius, batched and single poses: same angles bit for bit, same ok, same reasons.
+    m = load_robot_model(name)
+    rng = np.random.default_rng(3)
+    nom = K.forward(m, K.standing_joint_angles(m))
+    p = nom + rng.normal(0.0, 0.6 * m.leg_length_m, (5000, 4, 3))
+    p[10, 2] = np.nan
+    p[11, 1, 1:] = m.hip_offsets[1, 1:] + [-m.abduction_offset_m, 0.0]   # rho2 == 0
+    p[12, 0] = m.hip_offsets[0]                                            # inside the offset
+    results = []
+    for compiled in (False, True):
+        K.use_compiled_ik(compiled)
+        try:
+            results.append((K.solve_ik(m, p), K.solve_ik(m, p[7]),
+                            K.solve_ik(m, p[:50].reshape(5, 10, 4, 3), explain=False)))
+        finally:
+            K.use_compiled_ik(None)
+    (a, a1, a5), (b, b1, b5) = results
+    kinds = {r.split(': ')[1].split(' (')[0] for r in a.reasons}
+    # the failure kinds occur (closer than |thigh - shank| only where the legs allow it)
+    assert {'target beyond the leg length', 'solution outside the joint limits',
+            'target inside the abduction offset circle'} <= kinds and 0.05 < a.ok.mean() < 0.5
+    for x, y in ((a, b), (a1, b1), (a5, b5)):
+        assert x.q.shape == y.q.shape and x.ok.shape == y.ok.shape
+        assert np.array_equal(x.q, y.q, equal_nan=True)
+        assert np.array_equal(x.ok, y.ok) and x.reasons == y.reasons
+    assert not b.ok[10, 2] and np.isnan(b.q[10, 2]).all()
+
+
+def test_ik_kernel_can_be_switched_off_by_environment():
+    import subprocess
+    import sys
+    code = 'from terrain_perception import kinematics as K; print(K._ik is None)'
+    out = [subprocess.run([sys.executable, '-c', code], capture_output=True, text=True,
+                          env={**__import__('os').environ, 'TERRAIN_IK_NUMBA': v}).stdout.strip()
+           for v in ('0', '1')]
+    assert out == ['True', 'False']
 
 
 def test_bad_shapes_are_refused():

@@ -234,7 +234,7 @@ def test_every_stage_runs_once_per_capture_on_a_synthetic_bag(synthetic_bag, tmp
 
 
 @pytest.mark.graph
-def test_bench_runs_both_thread_settings_and_gives_the_ratios(synthetic_bag, capsys):
+def test_bench_runs_each_variant_and_gives_the_ratios(synthetic_bag, capsys):
     from terrain_perception.bench import pipeline as bench
     args = argparse.Namespace(bag=synthetic_bag, captures=2, quick=False, sim_time=25.0,
                               run_dir=Path('unused'))
@@ -253,7 +253,12 @@ def test_bench_runs_both_thread_settings_and_gives_the_ratios(synthetic_bag, cap
         b['cpu_ms_per_capture'] / n['cpu_ms_per_capture'], rel=1e-2)
     assert r['patches_cpu_ratio'] > 0 and r['chain_cpu_ms_median'] == n['chain_cpu_ms_median_sum']
     assert r['recorded_bag'] is False
-    assert printed.count('median ms') == 2                      # both tables
+    assert printed.count('median ms') == 3                      # every variant's table
+    assert v['node_env']['compiled_ik'] is True and v['numpy_ik']['compiled_ik'] is False
+    assert v['numpy_ik']['threads'] == v['node_env']['threads']
+    assert r['plan_map_ik_ratio'] == pytest.approx(
+        v['numpy_ik']['stage_median_ms']['plan_map'] / n['stage_median_ms']['plan_map'],
+        rel=1e-2)
     assert 'baseline / node env' in printed
 
 

@@ -10,7 +10,10 @@ bag and captures:
   ``MKL_NUM_THREADS`` removed from the environment, i.e. every library's default pool (one
   worker per core);
 * ``node_env``: the three = 1, what ``terrain-launch`` gives node processes
-  (``terrain_ros.env.node_env``).
+  (``terrain_ros.env.node_env``);
+* ``numpy_ik``: the node env with ``TERRAIN_IK_NUMBA=0``, the numpy leg IK instead of the
+  compiled kernel (the baseline of ``_ik_kernel``: the planner's dry run of the controller's
+  checks and the controller call it hundreds of times per plan).
 
 It prints both tables, then the per-stage medians side by side and the ratios baseline / node
 env of the ICP mapper's update, the contact patches and all CPU per capture. Without ``--bag``
@@ -40,10 +43,11 @@ from typing import Dict, Optional
 # The pools terrain_ros.env.node_env sets to one thread (NODE_THREAD_DEFAULTS; the core may not
 # import terrain_ros, test_pipeline_profile checks that the two lists agree).
 THREAD_VARS = ('OMP_NUM_THREADS', 'OPENBLAS_NUM_THREADS', 'MKL_NUM_THREADS')
-VARIANTS = ('default_pools', 'node_env')
+VARIANTS = ('default_pools', 'node_env', 'numpy_ik')
 VARIANT_TITLES = {'default_pools': 'baseline: the libraries\' default thread pools '
                                    '(OMP/OPENBLAS/MKL_NUM_THREADS unset)',
-                  'node_env': 'node env: OMP/OPENBLAS/MKL_NUM_THREADS=1 (terrain-launch)'}
+                  'node_env': 'node env: OMP/OPENBLAS/MKL_NUM_THREADS=1 (terrain-launch)',
+                  'numpy_ik': 'node env with the numpy leg IK (TERRAIN_IK_NUMBA=0)'}
 STAGES = ('stereo', 'icp', 'fill', 'plan_map', 'patches', 'plan_goal')
 DEMO_RUN_DIR = Path('runs') / 'bench' / 'pipeline-demo'
 DEFAULT_DOMAIN = '47'
@@ -68,8 +72,12 @@ def _env(variant: Optional[str] = None) -> Dict[str, str]:
     if variant == 'default_pools':
         for k in THREAD_VARS:
             env.pop(k, None)
-    elif variant == 'node_env':
+    elif variant in ('node_env', 'numpy_ik'):
         env.update({k: '1' for k in THREAD_VARS})
+    if variant == 'numpy_ik':
+        env['TERRAIN_IK_NUMBA'] = '0'
+    elif variant is not None:
+        env.pop('TERRAIN_IK_NUMBA', None)
     return env
 
 
@@ -130,7 +138,7 @@ def run(args) -> dict:
     variants = {}
     for v, r in res.items():
         variants[v] = {
-            'threads': r['threads'],
+            'threads': r['threads'], 'compiled_ik': r.get('compiled_ik'),
             'stage_median_ms': {s: r['stages'][s]['median_ms'] for s in STAGES},
             'stage_p90_ms': {s: r['stages'][s]['p90_ms'] for s in STAGES},
             'cpu_ms_per_capture': r['cpu_ms_per_capture'],
@@ -164,6 +172,15 @@ def run(args) -> dict:
         'icp_cpu_ms_median': n['stage_median_ms']['icp'],
         'icp_cpu_ms_median_default_pools': b['stage_median_ms']['icp'],
     }
+    k = variants['numpy_ik']
+    out['plan_map_cpu_ms_median'] = n['stage_median_ms']['plan_map']
+    out['plan_map_cpu_ms_median_numpy_ik'] = k['stage_median_ms']['plan_map']
+    out['plan_map_ik_ratio'] = _ratio(k['stage_median_ms']['plan_map'],
+                                      n['stage_median_ms']['plan_map'])
+    out['chain_cpu_ms_median_numpy_ik'] = k['chain_cpu_ms_median_sum']
+    print(f'planner map callback (replan + dry run): numpy IK {k["stage_median_ms"]["plan_map"]}'
+          f' ms, compiled IK {n["stage_median_ms"]["plan_map"]} ms -> {out["plan_map_ik_ratio"]}x;'
+          f' chain {k["chain_cpu_ms_median_sum"]} -> {n["chain_cpu_ms_median_sum"]} ms')
     print(f'ICP update CPU ratio (baseline / node env) {out["icp_cpu_ratio"]}, patches '
           f'{out["patches_cpu_ratio"]}, all CPU per capture {out["total_cpu_ratio"]}'
           + (f'; bag recorded by this run: {bag}' if recorded else ''))

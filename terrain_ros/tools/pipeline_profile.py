@@ -601,6 +601,7 @@ def summarise(cpu, counted_of: Dict[Stamp, int], counted: int, bag, robot, libra
         'library_height_m': library_height[0], 'library_height_source': library_height[1],
         'captures': counted, 'warmup': warmup, 'replay_end': replay_end,
         'threads': thread_settings(), 'cpu_count': os.cpu_count(),
+        'compiled_ik': _compiled_ik(),
         'stages': stages, 'total_cpu_ms': round(total, 1),
         'cpu_ms_per_capture': round(total / counted, 1) if counted else None,
         'chain': list(CHAIN),
@@ -617,6 +618,11 @@ def summarise(cpu, counted_of: Dict[Stamp, int], counted: int, bag, robot, libra
     }
 
 
+def _compiled_ik() -> bool:
+    from terrain_perception import kinematics
+    return kinematics._ik is not None
+
+
 def _fmt(v, spec='8.1f') -> str:
     width = int(spec.split('.')[0] or 0)
     return f'{v:{spec}}' if v is not None else f'{"-":>{width}}'
@@ -630,7 +636,8 @@ def format_table(r: dict) -> str:
            f'{r["captures"]} captures counted after {r["warmup"]} warm-up; replay ended: '
            f'{r["replay_end"]}; {r["wall_s"]:.0f} s wall, load average (1 min) '
            f'{r["loadavg_1min"][0]} -> {r["loadavg_1min"][1]}',
-           f'threads: {th} (unset = the library\'s default); {r["cpu_count"]} CPUs',
+           f'threads: {th} (unset = the library\'s default); {r["cpu_count"]} CPUs; leg IK '
+           f'{"compiled" if r.get("compiled_ik") else "numpy (TERRAIN_IK_NUMBA=0)"}',
            'CPU per call = time.process_time() of this process (all its threads), '
            'deserialisation included']
     if not r['sink_matched']:
