@@ -58,6 +58,7 @@ LF, RF, LH, RH = 0, 1, 2, 3
 #: Crawl (walk) order of paper 000 / the issue: LH, LF, RH, RF.
 CRAWL_ORDER = (LH, LF, RH, RF)
 _SAME_SIDE = {LF: LH, LH: LF, RF: RH, RH: RF}
+_ACROSS = {LF: RF, RF: LF, LH: RH, RH: LH}
 #: Trot pairs (diagonals), first pair first.
 TROT_PAIRS = ((LF, RH), (RF, LH))
 
@@ -122,6 +123,11 @@ class PlannerConfig:
         'foot on its side, as a share of the nominal one (the hip spacing): a hind leg that '
         'catches up with a blocked front leg leaves a support polygon too short to balance on '
         '(0 = no limit) [-]', 0.0, 1.0)
+    min_stance_width: float = param(
+        0.45, 'narrowest distance across the walking direction between a left foot and the right '
+        'foot of its pair (front or hind), as a share of the nominal one: legs stepping around '
+        'rocks must not bring a pair\'s feet together under the body, where the robot rolls '
+        'over on the next swing (0 = no limit) [-]', 0.0, 1.0)
     nominal_weight_per_m2: float = param(
         20.0, "cost per square metre of distance from the stride rule's foothold (the search "
         'area centre): keeps legs from lagging into dead ends [1/m^2]', 0.0, 1e6)
@@ -837,6 +843,17 @@ class FootstepPlanner:
             ok &= (u <= fu[mate] - gap) if leg in (LH, RH) else (u >= fu[mate] + gap)
             if not np.any(ok):
                 return None, (f'no cell of its search area keeps the stance {gap:.3f} m long '
+                              f'(the {LEG_NAMES[mate]} foot)')
+        if cfg.min_stance_width > 0:
+            # Keep the stance wide: a left foot stays left of its pair's right foot (and a right
+            # foot right of its left one) by a share of the nominal width.
+            _, fv = self._uv(state.feet)
+            mate = _ACROSS[leg]
+            gap = cfg.min_stance_width * abs(self.nom_v[mate] - self.nom_v[leg])
+            ok &= (v >= fv[mate] + gap) if self.nom_v[leg] > self.nom_v[mate] else \
+                (v <= fv[mate] - gap)
+            if not np.any(ok):
+                return None, (f'no cell of its search area keeps the stance {gap:.3f} m wide '
                               f'(the {LEG_NAMES[mate]} foot)')
         xy, u, v, ij = xy[ok], u[ok], v[ok], ij[ok]
         z = g[ELEVATION][ij[:, 0], ij[:, 1]].astype(np.float64)

@@ -417,6 +417,39 @@ def test_a_leg_blocked_in_its_lane_steps_around_the_obstacle():
     assert advance[0.0][0] < 0.5 * A
 
 
+def test_a_pair_of_feet_keeps_the_stance_width():
+    """The blocked-lane scene above, with LF standing 4 cm inside its nominal line: stepping
+    around the block on the inside would put RF within 4-5 cm of LF across the walking
+    direction (the demo's roll-over: front feet 5 cm apart). With min_stance_width the RF
+    foothold keeps at least that share of the nominal width from LF; without it (0), the
+    test's counterfactual, it does not."""
+    n = 150
+    origin = (-0.75, -0.75)
+    nom = np.array(ROBOT.nominal_feet)
+    x = origin[0] + (np.arange(n) + 0.5) * RES
+    y = origin[1] + (np.arange(n) + 0.5) * RES
+    X, Y = np.meshgrid(x, y, indexing='ij')
+    rf = nom[fs.RF]
+    box = (X > rf[0] + 0.05) & (X < rf[0] + 0.30) & (np.abs(Y - rf[1]) < 0.045)
+    g = _grid(np.where(box, 0.05 - 0.8 * np.abs(Y - rf[1]), 0.0), origin)
+    feet = nom.copy()
+    feet[:, 2] = 0.0
+    feet[fs.LF, 1] -= 0.04
+    nominal_width = nom[fs.LF, 1] - nom[fs.RF, 1]
+    gaps = {}
+    for width in (0.45, 0.0):
+        cfg = fs.PlannerConfig(trot_threshold_m=0.0, horizon_steps=1, recovery=False,
+                               min_stance_width=width)
+        planner = fs.FootstepPlanner(ROBOT, cfg)
+        assert planner.set_map(g) is None
+        plan = planner.plan(_pose(), np.array([0.6, 0.0]), feet=feet, first_leg=fs.RF)
+        assert plan.ok and plan.footsteps[0].leg == fs.RF, plan.status_text
+        _check_plan_feasible(plan, cfg)
+        gaps[width] = feet[fs.LF, 1] - plan.footsteps[0].position[1]
+    assert gaps[0.45] >= 0.45 * nominal_width - 1e-9
+    assert gaps[0.0] < 0.45 * nominal_width
+
+
 def test_plan_checked_keeps_what_the_executor_accepts():
     """plan_checked: a check accepting two steps cuts the plan to two (status says so); a check
     refusing any plan that starts with the planned first leg gets a plan starting with another
