@@ -7,6 +7,7 @@ set -euo pipefail
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 VENV="${VENV:-$ROOT/.venv}"
 OUT="$ROOT/runs/bench"
+SUITES_GIVEN="${SUITES:-}"
 SUITES="${SUITES:-stereo icp fill plan sim closed-loop}"
 mkdir -p "$OUT"
 export ROS_AUTOMATIC_DISCOVERY_RANGE="${ROS_AUTOMATIC_DISCOVERY_RANGE:-LOCALHOST}"
@@ -19,5 +20,9 @@ for s in $SUITES; do
     echo "terrain-bench $s failed (see $OUT/$s.txt)" >&2
   fi
 done
-"$VENV/bin/python" -m terrain_perception.bench._report "$OUT" > "$ROOT/docs/BENCHMARKS.md"
+# A partial run (SUITES set) keeps the other suites' sections of the current document.
+keep=()
+[ -n "${SUITES_GIVEN:-}" ] && [ -f "$ROOT/docs/BENCHMARKS.md" ] && keep=(--keep "$ROOT/docs/BENCHMARKS.md")
+"$VENV/bin/python" -m terrain_perception.bench._report "$OUT" "${keep[@]}" > "$ROOT/docs/BENCHMARKS.md.new"
+mv "$ROOT/docs/BENCHMARKS.md.new" "$ROOT/docs/BENCHMARKS.md"
 echo "docs/BENCHMARKS.md regenerated from $OUT"

@@ -1,0 +1,32 @@
+"""docs/BENCHMARKS.md composition: a partial benchmark run replaces its own sections and keeps
+the others (``_report --keep``)."""
+
+from __future__ import annotations
+
+import json
+
+from terrain_perception.bench import _report
+
+
+def test_partial_run_replaces_its_sections_and_keeps_the_others(tmp_path, capsys):
+    old = ('# Benchmarks\n\nintro\n\n## stereo\n\n```\n$ terrain-bench stereo\nold stereo\n```\n\n'
+           '## plan\n\n```\n$ terrain-bench plan\nold plan\n```\n\n| key | value |\n|---|---|\n'
+           '| `ratio` | 0.3 |\n\n## sim-rocks\n\n```\n$ terrain-bench sim --rocks-only\nrocks\n```\n')
+    doc = tmp_path / 'BENCHMARKS.md'
+    doc.write_text(old)
+    runs = tmp_path / 'bench'
+    runs.mkdir()
+    (runs / 'plan.txt').write_text('new plan table\n')
+    (runs / 'plan.json').write_text(json.dumps({'ratio': 0.25, 'rows': [1, 2]}))
+    (runs / 'plan.cmd').write_text('terrain-bench plan --json runs/bench/plan.json\n')
+    assert _report.main(str(runs), keep=doc) == 0
+    new = capsys.readouterr().out
+    got = _report.sections(new)
+    assert list(got) == ['stereo', 'plan', 'sim-rocks']          # ORDER first, then the rest
+    assert got['stereo'] == _report.sections(old)['stereo']
+    assert got['sim-rocks'] == _report.sections(old)['sim-rocks']
+    assert 'new plan table' in got['plan'] and 'old plan' not in got['plan']
+    assert '| `ratio` | 0.25 |' in got['plan'] and 'rows' not in got['plan']
+    # without --keep only the folder's suites are written
+    _report.main(str(runs))
+    assert list(_report.sections(capsys.readouterr().out)) == ['plan']
