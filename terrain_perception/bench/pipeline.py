@@ -130,8 +130,8 @@ def run(args) -> dict:
     captures = args.captures if args.captures is not None else (15 if args.quick else 60)
     if captures <= 0:
         raise ValueError('--captures must be positive')
-    recorded = args.bag is None
-    bag = record_bag(args.run_dir, args.sim_time) if recorded else args.bag
+    recorded = args.bag is None and not (args.run_dir / 'bag' / 'metadata.yaml').is_file()
+    bag = record_bag(args.run_dir, args.sim_time) if args.bag is None else args.bag
     if not bag.exists():
         raise FileNotFoundError(f'bag {str(bag)!r} does not exist')
     res = {v: profile(bag, captures, v) for v in VARIANTS}
@@ -183,5 +183,5 @@ def run(args) -> dict:
           f' chain {k["chain_cpu_ms_median_sum"]} -> {n["chain_cpu_ms_median_sum"]} ms')
     print(f'ICP update CPU ratio (baseline / node env) {out["icp_cpu_ratio"]}, patches '
           f'{out["patches_cpu_ratio"]}, all CPU per capture {out["total_cpu_ratio"]}'
-          + (f'; bag recorded by this run: {bag}' if recorded else ''))
+          + (f'; bag recorded by this run: {bag}' if recorded else f'; bag: {bag}'))
     return out
