@@ -11,8 +11,9 @@
 OpenMP/BLAS pool (``OMP_NUM_THREADS``, ``OPENBLAS_NUM_THREADS``, ``MKL_NUM_THREADS`` = 1 unless
 set): the graph is already parallel across processes, and a pool's spinning workers take the
 cores from the other nodes and the simulator. ``terrain-bench pipeline`` measures it on a
-recorded run: with one thread per pool the ICP mapper's update took 1.29x less CPU and a
-capture's whole pipeline 1.18x less (docs/BENCHMARKS.md). Export a larger value to give a node
+recorded run: with one thread per pool the ICP mapper's update took 1.81x less CPU and a
+capture's whole pipeline 1.28x less on a quiet machine (1.15x and 1.05x with the closed-loop
+benchmark running beside it; docs/BENCHMARKS.md). Export a larger value to give a node
 more threads on a bigger computer.
 """
 
