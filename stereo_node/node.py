@@ -41,7 +41,7 @@ from terrain_perception.config import check_value, param
 from terrain_perception.ground_plane import GroundPlaneConfig, fit_ground_plane
 from terrain_perception.stereo import StereoConfig, StereoInputError, StereoPipeline
 from terrain_ros.conversions import (camera_info_to_stereo, disparity_to_msg, image_to_numpy,
-                                     make_header, stamp_to_sec, xyz_to_cloud)
+                                     make_header, stamp_key, stamp_to_sec, xyz_to_cloud)
 from terrain_ros.node import Counters, run_node
 from terrain_ros.params import declare_config
 from terrain_ros.qos import RELIABLE_QOS, SENSOR_QOS
@@ -67,10 +67,6 @@ class StereoNodeConfig:
                                  'output')
 
 
-def _stamp_key(header: Header) -> Stamp:
-    return (int(header.stamp.sec), int(header.stamp.nanosec))
-
-
 class StereoSync:
     """Exact-stamp pairing of left and right images with bounded queues.
 
@@ -86,7 +82,7 @@ class StereoSync:
 
     def add(self, side: str, msg: Image):
         other = 'right' if side == 'left' else 'left'
-        key = _stamp_key(msg.header)
+        key = stamp_key(msg.header.stamp)
         dropped = []
         mine, theirs = self._q[side], self._q[other]
         if key in theirs:

@@ -13,6 +13,7 @@ problem when a message cannot be converted, so a node can count and log it and k
 from __future__ import annotations
 
 import array
+import struct
 from typing import Dict, Mapping, Optional, Sequence, Tuple
 
 import numpy as np
@@ -35,6 +36,19 @@ from terrain_perception.transforms import R_to_quat, quat_to_R
 def stamp_to_sec(stamp: Time) -> float:
     """builtin_interfaces/Time -> seconds."""
     return float(stamp.sec) + 1e-9 * float(stamp.nanosec)
+
+
+def stamp_key(stamp: Time) -> Tuple[int, int]:
+    """``(sec, nanosec)`` of a builtin_interfaces/Time: a hashable, ordered stamp."""
+    return (int(stamp.sec), int(stamp.nanosec))
+
+
+def peek_stamp(raw: bytes) -> Tuple[int, int]:
+    """:func:`stamp_key` of a serialised message that starts with a std_msgs/Header, without
+    deserialising it (CDR: a 4-byte encapsulation header whose second byte is 1 for little
+    endian, then int32 sec, uint32 nanosec). ``struct.error`` if ``raw`` is too short."""
+    sec, nsec = struct.unpack_from('<iI' if raw[1] == 1 else '>iI', raw, 4)
+    return (int(sec), int(nsec))
 
 
 def sec_to_stamp(t: float) -> Time:

@@ -1,5 +1,7 @@
 """Round trips of every conversion in terrain_ros.conversions, NaN cells included."""
 
+import struct
+
 import numpy as np
 import pytest
 from sensor_msgs.msg import PointField
@@ -195,3 +197,15 @@ def test_joint_state_to_arrays_orders_joints_and_names_each_problem():
         with pytest.raises(JointStateError) as err:
             joint_state_to_arrays(bad, want)
         assert err.value.key == f'joint_state_{key}'
+
+
+def test_peek_stamp_reads_the_header_stamp_of_serialised_messages():
+    from rclpy.serialization import serialize_message
+    from sensor_msgs.msg import Image
+    from terrain_msgs.msg import TerrainGrid
+    for msg in (Image(), TerrainGrid()):
+        msg.header.stamp = cv.sec_to_stamp(1234.000000567)
+        raw = serialize_message(msg)
+        assert cv.peek_stamp(raw) == cv.stamp_key(msg.header.stamp) == (1234, 567)
+    with pytest.raises(struct.error):
+        cv.peek_stamp(b'\x00\x01\x00')

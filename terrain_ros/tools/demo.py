@@ -323,6 +323,7 @@ def fast_executor(context):
 
 #: The pipeline's outputs in order; a capture's stamp travels along them (stereo -> ICP mapper
 #: -> terrain fill -> footstep planner).
+IMAGE_TOPIC = '/stereo/left/image_rect'
 STAGE_TOPICS = ('/stereo/points', '/map/fine', '/map/filled', '/footstep_plan')
 STAGE_NAMES = ('stereo', 'icp_mapper', 'terrain_fill', 'footstep_planner')
 
@@ -338,11 +339,6 @@ def stage_latencies(image_wall: Dict[tuple, float],
         out[name] = [1000.0 * (cur[k] - prev[k]) for k in cur if k in prev]
         prev = cur
     return out
-
-
-def _cdr_stamp(data: bytes) -> tuple:
-    """(sec, nanosec) of a serialized message that starts with a std_msgs/Header."""
-    return struct.unpack_from('<iI', data, 4)
 
 
 class Monitor:
@@ -380,10 +376,11 @@ class Monitor:
         self.terrain_msg = None
         self.fine_msg = None
         self.filled_msg = None
-        self.image_wall: Dict[tuple, float] = {}
         self.latencies_ms: List[float] = []
-        # wall time of the first arrival of each capture's stamp on the pipeline's outputs
-        self.stage_wall: Dict[str, Dict[tuple, float]] = {t: {} for t in STAGE_TOPICS}
+        # wall time of the first arrival of each capture's stamp on the images and the
+        # pipeline's outputs
+        self.stage_wall: Dict[str, Dict[tuple, float]] = {
+            t: {} for t in (IMAGE_TOPIC,) + STAGE_TOPICS}
         self.counts: Dict[str, int] = {}
         self._joint_index = None
         self._running = True
@@ -420,7 +417,7 @@ class Monitor:
         sub(Header, '/capture_request', lambda m: self._count('/capture_request'),
             RELIABLE_QOS)
         # Raw (undeserialized) for big messages: only their stamps and counts are needed.
-        sub(Image, '/stereo/left/image_rect', self._on_image, SENSOR_QOS, raw=True)
+        sub(Image, IMAGE_TOPIC, self._on_image, SENSOR_QOS, raw=True)
         sub(PointCloud2, '/stereo/points', self._on_points, SENSOR_QOS, raw=True)
         self.goal_pub = n.create_publisher(PoseStamped, '/goal_pose', RELIABLE_QOS)
         if self.publish_goal:
@@ -477,15 +474,17 @@ class Monitor:
         return True
 
     def _on_points(self, data: bytes) -> None:
+        from terrain_ros.conversions import peek_stamp
         self._count('/stereo/points')
         try:
-            self._mark('/stereo/points', _cdr_stamp(data))
+            self._mark('/stereo/points', peek_stamp(data))
         except struct.error:
             pass
 
     def _on_fine(self, msg) -> None:
+        from terrain_ros.conversions import stamp_key
         self._keep('fine_msg', msg, '/map/fine')
-        self._mark('/map/fine', (int(msg.header.stamp.sec), int(msg.header.stamp.nanosec)))
+        self._mark('/map/fine', stamp_key(msg.header.stamp))
         if self.blind_pub is not None:
             # Blind variant: the same grid and stamp, flat and fully "observed".
             from terrain_perception.grid import GridMap
@@ -498,8 +497,9 @@ class Monitor:
             self.blind_pub.publish(grid_to_msg(flat))
 
     def _on_filled(self, msg) -> None:
+        from terrain_ros.conversions import stamp_key
         self._keep('filled_msg', msg, '/map/filled')
-        self._mark('/map/filled', (int(msg.header.stamp.sec), int(msg.header.stamp.nanosec)))
+        self._mark('/map/filled', stamp_key(msg.header.stamp))
 
     def _on_clock(self, msg) -> None:
         from terrain_ros.conversions import stamp_to_sec
@@ -573,25 +573,23 @@ class Monitor:
             self.joint_q.append(pos[idx].reshape(4, 3))
 
     def _on_image(self, data: bytes) -> None:
-        self._count('/stereo/left/image_rect')
+        from terrain_ros.conversions import peek_stamp
+        self._count(IMAGE_TOPIC)
         try:
-            stamp = _cdr_stamp(data)
+            self._mark(IMAGE_TOPIC, peek_stamp(data))
         except struct.error:
-            return
-        self.image_wall[stamp] = time.monotonic()
-        if len(self.image_wall) > 200:
-            for k in list(self.image_wall)[:100]:
-                del self.image_wall[k]
+            pass
 
     def _on_plan(self, msg) -> None:
-        from terrain_ros.conversions import stamp_to_sec
+        from terrain_ros.conversions import stamp_key, stamp_to_sec
         self._count('/footstep_plan')
         now = time.monotonic()
-        key = (int(msg.header.stamp.sec), int(msg.header.stamp.nanosec))
+        key = stamp_key(msg.header.stamp)
         # Capture-to-plan: the FIRST plan made on the map of a capture. Later plans with the
         # same stamp (a goal or parameter change replans on the same map) are not latency.
-        if self._mark('/footstep_plan', key) and key in self.image_wall:
-            self.latencies_ms.append(1000.0 * (now - self.image_wall[key]))
+        images = self.stage_wall[IMAGE_TOPIC]
+        if self._mark('/footstep_plan', key) and key in images:
+            self.latencies_ms.append(1000.0 * (now - images[key]))
         steps = np.array([[f.leg, f.position.x, f.position.y, f.position.z, f.cost]
                           for f in msg.footsteps], dtype=np.float64).reshape(-1, 5)
         with self.lock:
@@ -656,7 +654,7 @@ class Monitor:
                 except ValueError as exc:
                     d.notes.append(f'{attr}: last message unusable: {exc}')
         d.latencies_ms = list(self.latencies_ms)
-        d.latency_stages_ms = stage_latencies(self.image_wall, self.stage_wall)
+        d.latency_stages_ms = stage_latencies(self.stage_wall[IMAGE_TOPIC], self.stage_wall)
         d.counts = dict(self.counts)
         return d
 

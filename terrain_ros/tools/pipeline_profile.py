@@ -88,7 +88,6 @@ import io
 import json
 import os
 import pstats
-import struct
 import sys
 import time
 from pathlib import Path
@@ -279,18 +278,6 @@ def thread_settings() -> Dict[str, Optional[str]]:
 # the replay
 
 
-def peek_stamp(raw: bytes) -> Stamp:
-    """Header stamp of a serialised message that starts with a std_msgs/Header (CDR: a 4-byte
-    encapsulation header whose second byte is 1 for little endian, then int32 sec, uint32
-    nanosec) without deserialising it."""
-    sec, nsec = struct.unpack_from('<iI' if raw[1] == 1 else '>iI', raw, 4)
-    return (int(sec), int(nsec))
-
-
-def _stamp(msg) -> Stamp:
-    return (int(msg.header.stamp.sec), int(msg.header.stamp.nanosec))
-
-
 class Replay:
     """The four nodes in one private context, fed from a bag; CPU per callback."""
 
@@ -421,6 +408,7 @@ def run_profile(bag: Path, reader, robot: Tuple[str, str], library_height: Tuple
                 captures: int, warmup: int, profile_stage: Optional[str]) -> dict:
     """Replay ``reader``'s bag through the four nodes; the figures of :func:`summarise`."""
     from rclpy.serialization import deserialize_message
+    from terrain_ros.conversions import peek_stamp, stamp_key
     types = _message_types()
     wall0, load0 = time.monotonic(), os.getloadavg()
     R = Replay(robot[0], library_height[0], profile_stage)
@@ -441,7 +429,7 @@ def run_profile(bag: Path, reader, robot: Tuple[str, str], library_height: Tuple
             if topic == '/map/fine':
                 key = peek_stamp(raw)
             elif F._grid_msg is not None:
-                key = _stamp(F._grid_msg)
+                key = stamp_key(F._grid_msg.header.stamp)
             else:
                 key = peek_stamp(raw) if raw is not None else None
             before = (F.published, F.counters['bad_grid'])
