@@ -137,6 +137,15 @@ def course_info(course: str, seed: int, robot: str):
     return CourseInfo(course, seed, start, approach, approach + rough, finish), model
 
 
+def fill_library_height(course: str) -> Optional[float]:
+    """Height range of the fill library's tiles for a course class: the class's own for the
+    taller courses, None for the launch file's default (0.06 m, rocks-6cm)."""
+    if course in ('rocks-12cm', 'stones-15cm'):
+        from terrain_perception.terrain import COURSE_CLASSES
+        return float(COURSE_CLASSES[course].max_height_m)
+    return None
+
+
 def fill_cost_config():
     """The CostConfig the fill node runs with (config/terrain_fill.yaml ``cost.*``)."""
     from terrain_perception.config import make_config
@@ -703,9 +712,9 @@ def run(args) -> int:
            'real_time_factor': str(args.real_time_factor)}
     if args.blind:
         cli['planner_map'] = '/map/blind'
-    if course.name in ('rocks-12cm', 'stones-15cm'):
-        from terrain_perception.terrain import COURSE_CLASSES
-        cli['library_height_m'] = str(COURSE_CLASSES[course.name].max_height_m)
+    height = fill_library_height(course.name)
+    if height is not None:
+        cli['library_height_m'] = str(height)
     cli = {k: v for k, v in cli.items() if k in declared}
     for a in args.arg:
         if ':=' not in a:

@@ -259,13 +259,10 @@ def choose_library_height(requested: Optional[float], bag: Path) -> Tuple[float,
         if not 0.005 <= requested <= 1.0:
             raise ProfileError(f'--library-height {requested} is outside [0.005, 1.0] m')
         return float(requested), '--library-height'
+    from terrain_ros.tools.demo import fill_library_height
     course = _run_summary(bag).get('course')
-    # terrain-demo's rule: the course class's height for these two, the launch default else.
-    if course in ('rocks-12cm', 'stones-15cm'):
-        from terrain_perception.terrain import COURSE_CLASSES
-        return float(COURSE_CLASSES[course].max_height_m), f'course {course} (summary.json)'
-    if course:
-        return 0.06, f'course {course} (summary.json)'
+    if course:   # terrain-demo's rule; None = the launch file's default, 0.06 m
+        return fill_library_height(course) or 0.06, f'course {course} (summary.json)'
     return 0.06, 'default (rocks-6cm)'
 
 
