@@ -190,16 +190,19 @@ def _record(args) -> int:
 # play / info
 
 
-def _open_reader(path: str):
+def open_reader(path):
+    """An opened rosbags Reader of the bag directory ``path``; ToolError (one line) if it is
+    missing or unreadable."""
     from rosbags.rosbag2 import Reader
     p = Path(path)
     if not p.exists():
-        raise ToolError(f'bag {path!r} does not exist')
+        raise ToolError(f'bag {str(path)!r} does not exist')
     try:
         reader = Reader(p)
         reader.open()
-    except Exception as exc:  # ReaderError, yaml errors, truncated files
-        raise ToolError(f'cannot read bag {path!r}: {exc}') from None
+    except Exception as exc:  # ReaderError, yaml errors, missing metadata, truncated files
+        text = ' '.join(str(exc).split())
+        raise ToolError(f'cannot read bag {str(path)!r}: {text}') from None
     return reader
 
 
@@ -219,7 +222,7 @@ def _publisher_qos(conn):
 def _play(args) -> int:
     if args.rate <= 0:
         raise ToolError(f'--rate must be positive, got {args.rate}')
-    reader = _open_reader(args.bag)
+    reader = open_reader(args.bag)
     conns = list(reader.connections)
     if args.topics:
         wanted = {t if t.startswith('/') else '/' + t for t in args.topics}
@@ -306,7 +309,7 @@ def _clock_msg(t_ns: int):
 
 
 def _info(args) -> int:
-    reader = _open_reader(args.bag)
+    reader = open_reader(args.bag)
     try:
         files = sorted(p.name for p in Path(args.bag).iterdir() if p.suffix in ('.mcap', '.db3'))
         size = sum(p.stat().st_size for p in Path(args.bag).iterdir() if p.is_file())

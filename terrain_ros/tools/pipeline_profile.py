@@ -96,6 +96,8 @@ from typing import Dict, List, Optional, Tuple
 import numpy as np
 
 from terrain_ros.env import CONFIG_DIR, NODE_THREAD_DEFAULTS, apply_safe_defaults
+from terrain_ros.tools.bag import open_reader
+from terrain_ros.tools.common import ToolError
 
 PROG = 'pipeline_profile'
 REPO = CONFIG_DIR.parent
@@ -140,7 +142,7 @@ TAIL_LIMIT_S = 30.0     # bag seconds the replay goes on after the last counted 
 Stamp = Tuple[int, int]
 
 
-class ProfileError(Exception):
+class ProfileError(ToolError):
     """A user-facing failure: one line on stderr, exit code 2."""
 
 
@@ -176,17 +178,6 @@ def _bag_dir(path: Path) -> Path:
     if path.is_dir() and not (path / 'metadata.yaml').is_file():
         raise ProfileError(f'{str(path)!r} is not a rosbag2 directory (no metadata.yaml)')
     return path
-
-
-def _open_reader(path: Path):
-    from rosbags.rosbag2 import Reader
-    try:
-        reader = Reader(path)
-        reader.open()
-    except Exception as exc:  # ReaderError, yaml errors, missing metadata, truncated files
-        text = ' '.join(str(exc).split())
-        raise ProfileError(f'cannot read bag {str(path)!r}: {text}') from None
-    return reader
 
 
 def check_topics(connections) -> Dict[str, str]:
@@ -684,7 +675,7 @@ def main(argv=None) -> int:
             raise ProfileError(f'unknown robot {args.robot!r} '
                                f'(known: {", ".join(available_robots())})')
         bag = _bag_dir(args.bag)
-        reader = _open_reader(bag)
+        reader = open_reader(bag)
         try:
             check_topics(reader.connections)
             robot = choose_robot(args.robot, reader, bag)
@@ -693,7 +684,7 @@ def main(argv=None) -> int:
                                  args.profile)
         finally:
             reader.close()
-    except ProfileError as exc:
+    except ToolError as exc:          # ProfileError, or terrain-bag's for an unreadable bag
         print(f'{PROG}: error: {exc}', file=sys.stderr)
         return 2
     if result['captures'] == 0:
