@@ -85,7 +85,7 @@ class PlannerConfig:
     lateral_search_m: float = param(0.03, 'half-width of each search area across the walking '
                                     'direction [m]', 0.0, 1.0)
     blocked_lateral_search_m: float = param(
-        0.09, 'half-width across the walking direction of the search area of a blocked leg: one '
+        0.06, 'half-width across the walking direction of the search area of a blocked leg: one '
         'whose normal area has no foothold at least half a stride (A/2) ahead, e.g. a rock '
         'filling its lane; the leg then steps around it instead of inching up to it (0 = off) '
         '[m]', 0.0, 1.0)
