@@ -380,11 +380,10 @@ def test_a_lagging_front_foot_keeps_its_hind_foot_a_stance_length_behind():
     assert gaps[0.0] < 0.65 * spacing - 0.02
 
 
-def test_a_leg_blocked_in_its_lane_steps_around_the_obstacle():
-    """A 5 cm roof-shaped block fills RF's lane (+-3 cm of its nominal line) from 5 cm to 30
-    cm ahead of the foot: no safe cell in the lane is half a stride ahead. With the wider
-    search of a blocked leg RF steps beside the block, at least A/2 ahead, onto a safe cell;
-    without it (0) it can only inch up to the block, the test's counterfactual."""
+def _blocked_lane_scene():
+    """A 5 cm roof-shaped block in RF's lane (+-4.5 cm of its nominal line) from 5 cm to 30 cm
+    ahead of the foot, on flat ground: ``(grid, block mask, nominal feet, stance on the
+    ground)``. A roof, not a flat top: every cell on it is steeper than the slope limit."""
     n = 150
     origin = (-0.75, -0.75)
     nom = np.array(ROBOT.nominal_feet)
@@ -393,11 +392,19 @@ def test_a_leg_blocked_in_its_lane_steps_around_the_obstacle():
     X, Y = np.meshgrid(x, y, indexing='ij')
     rf = nom[fs.RF]
     box = (X > rf[0] + 0.05) & (X < rf[0] + 0.30) & (np.abs(Y - rf[1]) < 0.045)
-    # A roof, not a flat top: every cell on it is steeper than the slope limit (39 deg).
-    h = np.where(box, 0.05 - 0.8 * np.abs(Y - rf[1]), 0.0)
-    g = _grid(h, origin)
+    g = _grid(np.where(box, 0.05 - 0.8 * np.abs(Y - rf[1]), 0.0), origin)
     feet = nom.copy()
     feet[:, 2] = 0.0
+    return g, box, nom, feet
+
+
+def test_a_leg_blocked_in_its_lane_steps_around_the_obstacle():
+    """A 5 cm roof-shaped block fills RF's lane (+-3 cm of its nominal line) from 5 cm to 30
+    cm ahead of the foot: no safe cell in the lane is half a stride ahead. With the wider
+    search of a blocked leg RF steps beside the block, at least A/2 ahead, onto a safe cell;
+    without it (0) it can only inch up to the block, the test's counterfactual."""
+    g, box, nom, feet = _blocked_lane_scene()
+    rf = nom[fs.RF]
     A = ROBOT.body_move_per_period_m
     advance = {}
     for wide in (0.09, 0.0):
@@ -423,17 +430,7 @@ def test_a_pair_of_feet_keeps_the_stance_width():
     direction (the demo's roll-over: front feet 5 cm apart). With min_stance_width the RF
     foothold keeps at least that share of the nominal width from LF; without it (0), the
     test's counterfactual, it does not."""
-    n = 150
-    origin = (-0.75, -0.75)
-    nom = np.array(ROBOT.nominal_feet)
-    x = origin[0] + (np.arange(n) + 0.5) * RES
-    y = origin[1] + (np.arange(n) + 0.5) * RES
-    X, Y = np.meshgrid(x, y, indexing='ij')
-    rf = nom[fs.RF]
-    box = (X > rf[0] + 0.05) & (X < rf[0] + 0.30) & (np.abs(Y - rf[1]) < 0.045)
-    g = _grid(np.where(box, 0.05 - 0.8 * np.abs(Y - rf[1]), 0.0), origin)
-    feet = nom.copy()
-    feet[:, 2] = 0.0
+    g, _, nom, feet = _blocked_lane_scene()
     feet[fs.LF, 1] -= 0.04
     nominal_width = nom[fs.LF, 1] - nom[fs.RF, 1]
     gaps = {}
