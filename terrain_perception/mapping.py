@@ -26,6 +26,8 @@ nothing here reads a clock.
 from __future__ import annotations
 
 import collections
+import logging
+import os
 from dataclasses import dataclass
 from typing import Deque, Dict, Optional, Tuple
 
@@ -43,6 +45,40 @@ COUNT = 'count'
 LAST_SEEN = 'last_seen'
 
 _REG = o3d.pipelines.registration
+_LOG = logging.getLogger(__name__)
+
+
+def _load_kernels():
+    """The compiled fine-map kernels (terrain_perception._mapping_kernels), or None for the
+    numpy code (``TERRAIN_MAPPING_NUMBA=0``, or numba missing: logged once)."""
+    if os.environ.get('TERRAIN_MAPPING_NUMBA', '1').strip().lower() in ('0', 'false', 'no',
+                                                                       'off'):
+        return None
+    try:
+        from terrain_perception import _mapping_kernels
+    except ImportError as e:
+        _LOG.warning('fine map: numba is not available (%s); using the numpy code', e)
+        return None
+    return _mapping_kernels
+
+
+_kernels = _load_kernels()
+
+
+def use_compiled_kernels(enabled: Optional[bool] = True) -> bool:
+    """Select the compiled fine-map kernels (``True``), the numpy code (``False``) or the
+    default (``None``) for the following :meth:`FineHeightMap.add` and
+    :meth:`FineHeightMap.rays_below` calls, process-wide; returns whether compiled is on.
+    Both give bitwise the same maps."""
+    global _kernels
+    if enabled is None:
+        _kernels = _load_kernels()
+    elif enabled:
+        from terrain_perception import _mapping_kernels
+        _kernels = _mapping_kernels
+    else:
+        _kernels = None
+    return _kernels is not None
 
 
 @dataclass(frozen=True)
@@ -525,10 +561,55 @@ class FineHeightMap:
     def nbytes(self) -> int:
         return int(sum(a.nbytes for a in self.s.values()))
 
+    def _flat_stats(self) -> Optional[Dict[str, np.ndarray]]:
+        """1-D views of the statistics for the kernels (None if one is not a C-contiguous
+        float64 array, so a view could not write through)."""
+        out = {}
+        for k, a in self.s.items():
+            if a.dtype != np.float64 or not a.flags.c_contiguous or a.shape != self.shape:
+                return None
+            out[k] = a.reshape(-1)
+        return out
+
     def add(self, points_map: np.ndarray, stamp_s: float,
             weights: Optional[np.ndarray] = None) -> int:
         """Fuse map-frame points ``(N, 3)`` [m] with optional weights ``(N,)`` (> 0, e.g.
-        inverse height variances [1/m^2]; None = all 1); returns how many fell on the window."""
+        inverse height variances [1/m^2]; None = all 1); returns how many fell on the window.
+
+        Runs the compiled kernels (:mod:`terrain_perception._mapping_kernels`) when loaded,
+        else :meth:`_add_numpy`; the two give bitwise the same statistics."""
+        k = _kernels
+        s = self._flat_stats() if k is not None else None
+        pts = np.asarray(points_map)
+        if s is None or pts.ndim != 2 or pts.shape[1] < 3 or pts.dtype != np.float64:
+            # (numpy keeps float32 heights in float32 arithmetic: the reference decides)
+            return self._add_numpy(points_map, stamp_s, weights)
+        pts = np.ascontiguousarray(pts)
+        n = len(pts)
+        wt = (np.ones(n) if weights is None
+              else np.ascontiguousarray(weights, dtype=np.float64))
+        if wt.shape != (n,):
+            return self._add_numpy(points_map, stamp_s, weights)
+        lin = np.empty(n, np.int64)
+        keep = np.empty(n, bool)
+        n_on = k.fine_gate(pts, wt, float(self.origin_xy[0]), float(self.origin_xy[1]),
+                           self.resolution_m, self.shape[0], self.shape[1],
+                           self.outlier_gate_m, lin, keep)
+        if n_on == 0:
+            return 0
+        z = pts[keep, 2]
+        if len(z) == 0:
+            return 0
+        z0 = float(np.mean(z))  # numpy's pairwise sum, as in _add_numpy
+        k.fine_merge(pts, wt, lin, keep, float(self.origin_xy[0]), float(self.origin_xy[1]),
+                     self.resolution_m, z0, float(stamp_s), s['n'], s['w'], s['mean'],
+                     s['m2'], s['min'], s['max'], s['last'], s['sx'], s['sy'], s['sxx'],
+                     s['sxy'], s['syy'], s['sxz'], s['syz'])
+        return int(n_on)
+
+    def _add_numpy(self, points_map: np.ndarray, stamp_s: float,
+                   weights: Optional[np.ndarray] = None) -> int:
+        """:meth:`add` in numpy (the reference of the compiled kernels)."""
         r = self.resolution_m
         f = (points_map[:, :2] - self.origin_xy) / r
         ij = np.floor(f).astype(np.int64)
@@ -633,7 +714,28 @@ class FineHeightMap:
         more than ``tolerance_m`` below the mean height of an observed cell at one of
         ``fractions`` of the way: a line of sight through known ground, so the point cannot be
         right. (A point only needs the test if the lowest tested spot of its ray lies below
-        the highest observed cell minus the tolerance.)"""
+        the highest observed cell minus the tolerance.)
+
+        Runs the compiled kernel when loaded (bitwise the same answer as the numpy code)."""
+        k = _kernels
+        pts = np.asarray(points, dtype=np.float64)
+        s = self._flat_stats() if k is not None else None
+        if s is not None and pts.ndim == 2 and pts.shape[1] == 3 and np.size(fractions) > 0:
+            out = np.zeros(len(pts), dtype=bool)
+            if len(pts):
+                k.rays_below(np.ascontiguousarray(pts),
+                             np.ascontiguousarray(origin, dtype=np.float64).reshape(3),
+                             np.ascontiguousarray(fractions, dtype=np.float64).reshape(-1),
+                             float(tolerance_m), s['n'], s['mean'], float(self.origin_xy[0]),
+                             float(self.origin_xy[1]), self.resolution_m, self.shape[0],
+                             self.shape[1], out)
+            return out
+        return self._rays_below_numpy(pts, origin, tolerance_m, fractions)
+
+    def _rays_below_numpy(self, points: np.ndarray, origin: np.ndarray, tolerance_m: float,
+                          fractions: np.ndarray = np.array([0.5, 0.65, 0.8, 0.95])
+                          ) -> np.ndarray:
+        """:meth:`rays_below` in numpy (the reference of the compiled kernel)."""
         pts = np.asarray(points, dtype=np.float64)
         out = np.zeros(len(pts), dtype=bool)
         seen = self.s['n'] > 0

@@ -450,3 +450,66 @@ def test_points_seen_through_known_ground_are_not_fused(terrain):
                         int(m.counters['points_below_line_of_sight']))
     assert results[0.1][0] < 0.005 and results[0.1][1] == 36, results
     assert results[0.0][0] > 0.03 and results[0.0][1] == 0, results
+
+
+def _noisy_capture(rng, n, origin=(0.0, 0.0), size=(0.6, 0.5)):
+    """Seeded scene for the fine-map kernels: a sloped, bumpy surface with noise, samples off
+    the window, a few gross outliers (the cell gate drops them) and clustered cells."""
+    x = rng.uniform(origin[0] - 0.05, origin[0] + size[0] + 0.05, n)
+    y = rng.uniform(origin[1] - 0.05, origin[1] + size[1] + 0.05, n)
+    z = 0.1 + 0.05 * x - 0.03 * y + 0.01 * np.sin(40 * x) + rng.normal(0, 0.002, n)
+    z[rng.random(n) < 0.01] += rng.choice([-0.2, 0.15], int(np.sum(rng.random(n) < 0.01)) or 1)[0]
+    return np.c_[x, y, z]
+
+
+@pytest.mark.parametrize('gate', [0.0, 0.015])
+@pytest.mark.parametrize('weighted', [False, True])
+def test_fine_map_kernels_equal_the_numpy_code(gate, weighted):
+    """The compiled FineHeightMap.add / rays_below give bitwise the statistics and masks of the
+    numpy reference (same float64 operations in the same order), over several captures, a
+    window shift and weights; tolerance 0."""
+    from terrain_perception import _mapping_kernels  # noqa: F401 (numba is a dependency)
+    rng = np.random.default_rng(7)
+    caps = [_noisy_capture(rng, 20000) for _ in range(4)]
+    wts = [mp.depth_weights(rng.uniform(0.2, 1.5, len(c)), 12.8, 0.15, 0.003) if weighted
+           else None for c in caps]
+    maps, masks = {}, {}
+    for compiled in (False, True):
+        mp.use_compiled_kernels(compiled)
+        try:
+            f = mp.FineHeightMap(0.01, (60, 50), (0.0, 0.0), 'plane', gate)
+            got = []
+            for k, (c, w) in enumerate(zip(caps, wts)):
+                if k == 2:
+                    f.shift(3, -2)
+                origin = np.array([0.3, -0.4, 0.5])
+                got.append(f.rays_below(c, origin, 0.01))
+                got.append(f.add(c, float(k), w))
+            maps[compiled], masks[compiled] = f, got
+        finally:
+            mp.use_compiled_kernels(None)
+    for k in mp.FineHeightMap._STATS:
+        np.testing.assert_array_equal(maps[True].s[k], maps[False].s[k], err_msg=k)
+    for a, b in zip(masks[True], masks[False]):
+        np.testing.assert_array_equal(a, b)
+    assert sum(np.sum(m) for m in masks[True][0::2]) > 0        # some rays were refused
+    assert np.isnan(maps[True].heights()).sum() < maps[True].heights().size
+    # an all-outside batch, an empty one, a NaN height and float32 input: the same answers
+    odd = {}
+    for compiled in (True, False):
+        mp.use_compiled_kernels(compiled)
+        try:
+            f = mp.FineHeightMap(0.01, (10, 10), (0.0, 0.0), 'plane', gate)
+            with np.errstate(invalid='ignore'):
+                odd[compiled] = [
+                    f.add(np.array([[5.0, 5.0, 0.0], [-0.5, 0.05, 0.0]]), 0.0),
+                    f.add(np.zeros((0, 3)), 0.0),
+                    f.rays_below(np.zeros((0, 3)), np.zeros(3), 0.01).tolist(),
+                    f.add(np.array([[0.05, 0.05, np.nan], [0.05, 0.05, 0.1]]), 1.0),
+                    f.add(np.array([[0.02, 0.03, 0.2], [0.02, 0.05, 0.3]], np.float32), 2.0),
+                    {k: v.copy() for k, v in f.s.items()}]
+        finally:
+            mp.use_compiled_kernels(None)
+    assert odd[True][:5] == odd[False][:5] and odd[True][0] == 0
+    for k in mp.FineHeightMap._STATS:
+        np.testing.assert_array_equal(odd[True][5][k], odd[False][5][k], err_msg=k)

@@ -1,0 +1,221 @@
+"""Compiled (numba) kernels of :class:`terrain_perception.mapping.FineHeightMap`'s per-capture
+steps.
+
+The ICP mapper fuses ~50k points per capture into the fine map; the numpy code spends most of
+that in a dozen full-window ``bincount`` passes, ``ufunc.at`` and fancy-indexed gathers and
+scatters of the 14 statistics. These kernels do the same arithmetic in one or two passes over
+the points and one over the touched cells:
+
+* :func:`fine_gate` - the window test and the per-capture outlier gate of
+  ``FineHeightMap.add`` (two passes of per-cell weighted means, summed in point order as
+  ``np.bincount`` does).
+* :func:`fine_merge` - the per-cell batch sums (count, weight, centred height moments, plane
+  sums, min, max) of the kept points, in point order, and their merge into the running
+  statistics with ``add``'s formulas, operation for operation.
+* :func:`rays_below` - ``FineHeightMap.rays_below``'s line-of-sight test per point.
+
+Same float64 operations in the same order, so the results are bitwise equal to the numpy code
+(``mapping.FineHeightMap`` keeps it as the reference, ``TERRAIN_MAPPING_NUMBA=0`` selects it;
+``test/test_mapping.py`` compares the two). The reference height of the batch (``np.mean``,
+pairwise summation) is left to numpy between the two kernels. fastmath is off, so nothing is
+reordered or fused. Explicit signatures and ``cache=True``: importing compiles them once per
+machine (a few seconds), then loads them from ``__pycache__``.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit, types
+
+_JIT = dict(cache=True, nogil=True, error_model='numpy')
+
+_in_f8_1d = types.Array(types.float64, 1, 'C', readonly=True)
+_in_f8_2d = types.Array(types.float64, 2, 'C', readonly=True)
+_in_i8_1d = types.Array(types.int64, 1, 'C', readonly=True)
+_in_b1_1d = types.Array(types.boolean, 1, 'C', readonly=True)
+_f8_1d = types.float64[::1]
+_i8_1d = types.int64[::1]
+_b1_1d = types.boolean[::1]
+_f8, _i8 = types.float64, types.int64
+
+
+@njit(types.int64(_in_f8_2d, _in_f8_1d, _f8, _f8, _f8, _i8, _i8, _f8, _i8_1d, _b1_1d), **_JIT)
+def fine_gate(points, wt, ox, oy, r, nx, ny, gate, lin, keep):
+    """Cell index ``lin`` (N,) of each point of ``points`` (N, 3) on the ``nx`` x ``ny``
+    window at ``(ox, oy)`` with cells ``r`` (-1 off the window), and ``keep`` (N,): on the
+    window and, when ``gate`` > 0, within ``gate`` of its cell's weighted mean height in this
+    batch (computed twice, the second time over the first pass's kept points only). Returns
+    how many points fell on the window."""
+    n_pts = points.shape[0]
+    n_on = 0
+    for k in range(n_pts):
+        fi = math.floor((points[k, 0] - ox) / r)
+        fj = math.floor((points[k, 1] - oy) / r)
+        # float tests: floor(v) >= 0 iff v >= 0; NaN and +-inf are off the window
+        if fi >= 0.0 and fi < nx and fj >= 0.0 and fj < ny:
+            lin[k] = np.int64(fi) * ny + np.int64(fj)
+            keep[k] = True
+            n_on += 1
+        else:
+            lin[k] = -1
+            keep[k] = False
+    if gate <= 0.0 or n_on == 0:
+        return n_on
+    size = nx * ny
+    cnt = np.zeros(size)
+    sm = np.zeros(size)
+    for _ in range(2):
+        for k in range(n_pts):
+            c = lin[k]
+            if c >= 0 and keep[k]:
+                cnt[c] += wt[k]
+                sm[c] += wt[k] * points[k, 2]
+        for k in range(n_pts):
+            c = lin[k]
+            if c >= 0:
+                keep[k] = abs(points[k, 2] - sm[c] / cnt[c]) <= gate
+        for k in range(n_pts):
+            c = lin[k]
+            if c >= 0:
+                cnt[c] = 0.0
+                sm[c] = 0.0
+    return n_on
+
+
+@njit(types.int64(_in_f8_2d, _in_f8_1d, _in_i8_1d, _in_b1_1d, _f8, _f8, _f8, _f8, _f8,
+                  _f8_1d, _f8_1d, _f8_1d, _f8_1d, _f8_1d, _f8_1d, _f8_1d, _f8_1d, _f8_1d,
+                  _f8_1d, _f8_1d, _f8_1d, _f8_1d, _f8_1d), **_JIT)
+def fine_merge(points, wt, lin, keep, ox, oy, r, z0, stamp_s,
+               s_n, s_w, s_mean, s_m2, s_min, s_max, s_last, s_sx, s_sy, s_sxx, s_sxy, s_syy,
+               s_sxz, s_syz):
+    """Fuse the kept points (``keep``, cells ``lin`` from :func:`fine_gate`) into the flat
+    statistics ``s_*`` (``nx * ny``,) of ``FineHeightMap``; ``z0``: the reference height
+    (mean of the kept heights). Returns the number of cells touched."""
+    n_pts = points.shape[0]
+    size = s_n.shape[0]
+    slot = np.full(size, -1, np.int64)
+    cells = np.empty(n_pts, np.int64)
+    S = np.empty((n_pts, 10))
+    nb = np.empty(n_pts)
+    zmin = np.empty(n_pts)
+    zmax = np.empty(n_pts)
+    m = 0
+    for k in range(n_pts):
+        if not keep[k]:
+            continue
+        c = lin[k]
+        q = slot[c]
+        if q < 0:
+            q = m
+            slot[c] = q
+            cells[q] = c
+            for a in range(10):
+                S[q, a] = 0.0
+            nb[q] = 0.0
+            zmin[q] = np.inf
+            zmax[q] = -np.inf
+            m += 1
+        z = points[k, 2]
+        w = wt[k]
+        zs = z - z0
+        fx = (points[k, 0] - ox) / r
+        fy = (points[k, 1] - oy) / r
+        dx = (fx - math.floor(fx) - 0.5) * r
+        dy = (fy - math.floor(fy) - 0.5) * r
+        S[q, 0] += w * 1.0
+        S[q, 1] += w * zs
+        S[q, 2] += w * (zs * zs)
+        S[q, 3] += w * dx
+        S[q, 4] += w * dy
+        S[q, 5] += w * (dx * dx)
+        S[q, 6] += w * (dx * dy)
+        S[q, 7] += w * (dy * dy)
+        S[q, 8] += w * (dx * zs)
+        S[q, 9] += w * (dy * zs)
+        nb[q] += 1.0
+        # np.minimum / np.maximum: a NaN sticks
+        if z < zmin[q] or z != z:
+            zmin[q] = z
+        if z > zmax[q] or z != z:
+            zmax[q] = z
+    for q in range(m):
+        c = cells[q]
+        wb = S[q, 0]
+        mb_rel = S[q, 1] / wb
+        mb = mb_rel + z0
+        m2b = S[q, 2] - wb * mb_rel * mb_rel
+        if m2b < 0.0:                                   # np.maximum(m2b, 0.0): NaN kept
+            m2b = 0.0
+        bx = S[q, 3]
+        by = S[q, 4]
+        bxz = S[q, 8] - mb_rel * bx
+        byz = S[q, 9] - mb_rel * by
+        wa = s_w[c]
+        ma = s_mean[c]
+        w = wa + wb
+        delta = mb - ma
+        new_mean = ma + delta * wb / w
+        shift_a = ma - new_mean
+        shift_b = mb - new_mean
+        s_sxz[c] += shift_a * s_sx[c] + bxz + shift_b * bx
+        s_syz[c] += shift_a * s_sy[c] + byz + shift_b * by
+        s_sx[c] += bx
+        s_sy[c] += by
+        s_sxx[c] += S[q, 5]
+        s_sxy[c] += S[q, 6]
+        s_syy[c] += S[q, 7]
+        s_m2[c] += m2b + delta * delta * wa * wb / w
+        s_mean[c] = new_mean
+        s_w[c] = w
+        s_n[c] += nb[q]
+        if zmin[q] < s_min[c] or zmin[q] != zmin[q]:
+            s_min[c] = zmin[q]
+        if zmax[q] > s_max[c] or zmax[q] != zmax[q]:
+            s_max[c] = zmax[q]
+        s_last[c] = stamp_s
+    return m
+
+
+@njit(types.void(_in_f8_2d, _in_f8_1d, _in_f8_1d, _f8, _in_f8_1d, _in_f8_1d, _f8, _f8, _f8,
+                 _i8, _i8, _b1_1d), **_JIT)
+def rays_below(points, origin, fractions, tolerance_m, s_n, s_mean, ox, oy, r, nx, ny, out):
+    """``out`` (N,): the ray from ``origin`` to the point passes more than ``tolerance_m``
+    below the mean height of an observed cell (``s_n > 0``) at one of ``fractions`` of its
+    length (see ``FineHeightMap.rays_below``; ``out`` is left untouched where it does not)."""
+    size = s_n.shape[0]
+    top = -np.inf
+    seen = False                                        # np.nanmax over the observed cells
+    for c in range(size):
+        if s_n[c] > 0.0 and s_mean[c] == s_mean[c]:
+            if not seen or s_mean[c] > top:
+                top = s_mean[c]
+            seen = True
+    if not seen:
+        return
+    ceiling = top - tolerance_m
+    f_hi = fractions[0]
+    for f in fractions:
+        if f > f_hi:
+            f_hi = f
+    o0, o1, o2 = origin[0], origin[1], origin[2]
+    for k in range(points.shape[0]):
+        if not (o2 + f_hi * (points[k, 2] - o2) < ceiling):
+            continue
+        d0 = points[k, 0] - o0
+        d1 = points[k, 1] - o1
+        d2 = points[k, 2] - o2
+        bad = False
+        for f in fractions:
+            q0 = o0 + f * d0
+            q1 = o1 + f * d1
+            q2 = o2 + f * d2
+            fi = math.floor((q0 - ox) / r)
+            fj = math.floor((q1 - oy) / r)
+            if fi >= 0.0 and fi < nx and fj >= 0.0 and fj < ny:
+                c = np.int64(fi) * ny + np.int64(fj)
+                if s_n[c] > 0.0 and q2 < s_mean[c] - tolerance_m:
+                    bad = True
+        if bad:
+            out[k] = True
