@@ -184,3 +184,25 @@ def test_self_mask_covers_the_legs_and_not_the_ground_around_the_feet():
     assert K.self_mask(m, q, pts[None, :4], T, 0.01).shape == (1, 4)
     with pytest.raises(ValueError):
         K.self_mask(m, np.zeros(5), pts, T, 0.01)
+
+
+def test_self_mask_of_a_float32_cloud_equals_that_of_its_float64_values():
+    """The bounding-box prefilter compares a float32 cloud (the node's clouds) against
+    float64 bounds without widening it first: the mask is the one of the float64 copy (the
+    earlier formulation), on an organized cloud around the legs with NaN holes."""
+    m = load_robot_model('littledog')
+    q = K.standing_joint_angles(m) + np.random.default_rng(3).normal(0, 0.05, (4, 3))
+    T = np.eye(4)
+    T[:3, 3] = [0.02, -0.01, 0.3]
+    lp = K.leg_points(m, q)[:, 1:].reshape(-1, 3) + T[:3, 3]
+    rng = np.random.default_rng(4)
+    lo, hi = lp.min(axis=0) - 0.05, lp.max(axis=0) + 0.05
+    cloud = rng.uniform(lo, hi, (120, 160, 3)).astype(np.float32)
+    cloud[rng.random((120, 160)) < 0.1] = np.nan
+    mask32 = K.self_mask(m, q, cloud, T, 0.015)
+    mask64 = K.self_mask(m, q, cloud.astype(np.float64), T, 0.015)
+    assert mask32.shape == (120, 160) and 500 < mask32.sum() < mask32.size // 2
+    np.testing.assert_array_equal(mask32, mask64)
+    ints = np.round(cloud.reshape(-1, 3)[:50] * 100).astype(np.int64)   # widened first
+    np.testing.assert_array_equal(K.self_mask(m, q, ints, T, 1.0),
+                                  K.self_mask(m, q, ints.astype(np.float64), T, 1.0))
