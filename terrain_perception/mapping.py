@@ -262,6 +262,11 @@ def valid_points(cloud: np.ndarray, min_range_m: float = 0.0, max_range_m: float
         raise ValueError(f'a cloud must be (H, W, 3) or (N, 3), got shape {cloud.shape}')
     if not np.issubdtype(cloud.dtype, np.floating):
         raise ValueError(f'cloud coordinates must be floating point, got {cloud.dtype}')
+    k = _kernels
+    if k is not None and view.dtype in (np.float32, np.float64):
+        # one compiled pass over the (strided) view: the same points in the same order
+        return k.valid_points(view if view.ndim == 3 else view[None], float(min_range_m),
+                              float(max_range_m))
     # per coordinate on the (strided) input, then only the valid points are gathered and
     # widened; float64 bounds, so a float32 depth is compared as its float64 value
     x, y, z = view[..., 0], view[..., 1], view[..., 2]
@@ -690,8 +695,23 @@ class FineHeightMap:
         s['last'][cells] = stamp_s
         return int(ok.sum())
 
+    def _plane_thresholds(self) -> Tuple[float, float]:
+        r2 = (0.1 * self.resolution_m) ** 2
+        return r2, 0.25 * r2 * r2
+
     def heights(self) -> np.ndarray:
         """Cell heights [m] (float64, NaN where empty) by the configured estimator."""
+        k = _kernels
+        s = self._flat_stats() if k is not None else None
+        if s is not None:
+            out = np.empty(self.shape)
+            k.fine_heights(*(s[n] for n in self._STATS), self.estimator == 'plane',
+                           *self._plane_thresholds(), out.reshape(-1))
+            return out
+        return self._heights_numpy()
+
+    def _heights_numpy(self) -> np.ndarray:
+        """:meth:`heights` in numpy (the reference of the compiled kernel)."""
         s = self.s
         n = s['n']
         seen = n > 0
@@ -711,8 +731,8 @@ class FineHeightMap:
             gx = (cyy * cxz - cxy * cyz) / det
             gy = (cxx * cyz - cxy * cxz) / det
             # enough spread: samples cover at least ~1/4 of the cell along both axes
-            r2 = (0.1 * self.resolution_m) ** 2
-            good = seen & (n >= 6) & (cxx > r2) & (cyy > r2) & (det > 0.25 * r2 * r2)
+            r2, det_min = self._plane_thresholds()
+            good = seen & (n >= 6) & (cxx > r2) & (cyy > r2) & (det > det_min)
             hp = s['mean'] - gx * mx - gy * my
         return np.where(good, hp, h)
 
@@ -796,6 +816,15 @@ class FineHeightMap:
     def to_grid(self, frame_id: str = 'map', stamp_s: float = 0.0) -> GridMap:
         """The window as a :class:`GridMap` with layers elevation, observed, variance, min, max,
         count, last_seen (NaN where empty; observed is 1/0)."""
+        k = _kernels
+        s = self._flat_stats() if k is not None else None
+        if s is not None:
+            names = (ELEVATION, OBSERVED, VARIANCE, MIN, MAX, COUNT, LAST_SEEN)
+            layers = {n: np.empty(self.shape, np.float32) for n in names}
+            k.fine_layers(*(s[n] for n in self._STATS), self.estimator == 'plane',
+                          *self._plane_thresholds(), *(layers[n].reshape(-1) for n in names))
+            return GridMap(self.resolution_m, tuple(self.origin_xy), self.shape, layers,
+                           frame_id=frame_id, stamp_s=stamp_s)
         s = self.s
         seen = s['n'] > 0
         nn = np.where(seen, s['w'], 1.0)
@@ -1091,22 +1120,28 @@ class IcpMapper:
         self._recenter(T_map_base[:3, 3])
         # the capture in the map frame, once (rows are selected below, not re-transformed)
         fine_map = transform_points(T_map_camera, fine_camera)
+        ok = None                                  # rows that passed the line-of-sight test
         if c.line_of_sight_tolerance_m > 0:
             # before this capture is added: its own points do not vouch for each other
             bad = self.fine.rays_below(fine_map, T_map_camera[:3, 3],
                                        c.line_of_sight_tolerance_m)
             if bad.any():
                 self.counters['points_below_line_of_sight'] += int(bad.sum())
-                fine_camera = fine_camera[~bad]
-                fine_map = fine_map[~bad]
-        near = fine_camera[:, 2] <= c.fine_max_range_m
-        near_z = fine_camera[near, 2]
+                ok = ~bad
+        # rows are gathered once per use (by combined masks) from the camera depths
+        z_cam = fine_camera[:, 2]
+        near = z_cam <= c.fine_max_range_m
+        if ok is not None:
+            near &= ok
         self.fine.add(_rows(fine_map, near), stamp_s,
-                      depth_weights(near_z, self.focal_baseline_px_m, c.disparity_sigma_px,
+                      depth_weights(z_cam[near], self.focal_baseline_px_m, c.disparity_sigma_px,
                                     c.depth_sigma_floor_m))
         # coarse model: the capture's sparse points with normals from its own neighbourhood
         if c.model_from == 'fine':
-            model_map = _rows(fine_map, fine_camera[:, 2] <= c.icp_max_range_m)
+            in_icp = z_cam <= c.icp_max_range_m
+            if ok is not None:
+                in_icp &= ok
+            model_map = _rows(fine_map, in_icp)
         else:
             model_map = transform_points(T_map_camera, src_camera)
         new = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(model_map))

@@ -473,7 +473,7 @@ def test_fine_map_kernels_equal_the_numpy_code(gate, weighted):
     caps = [_noisy_capture(rng, 20000) for _ in range(4)]
     wts = [mp.depth_weights(rng.uniform(0.2, 1.5, len(c)), 12.8, 0.15, 0.003) if weighted
            else None for c in caps]
-    maps, masks = {}, {}
+    maps, masks, layers = {}, {}, {}
     for compiled in (False, True):
         mp.use_compiled_kernels(compiled)
         try:
@@ -486,8 +486,19 @@ def test_fine_map_kernels_equal_the_numpy_code(gate, weighted):
                 got.append(f.rays_below(c, origin, 0.01))
                 got.append(f.add(c, float(k), w))
             maps[compiled], masks[compiled] = f, got
+            layers[compiled] = (f.heights(), f.to_grid().layers,
+                                mp.FineHeightMap(0.01, (60, 50), (0.0, 0.0), 'mean').heights())
+            f.estimator = 'mean'
+            layers[compiled] += (f.heights(),)
+            f.estimator = 'plane'
         finally:
             mp.use_compiled_kernels(None)
+    for a, b in zip(layers[True], layers[False]):
+        for x, y in (zip(a.values(), b.values()) if isinstance(a, dict) else [(a, b)]):
+            assert x.dtype == y.dtype
+            np.testing.assert_array_equal(x, y)
+    assert list(layers[True][1]) == list(layers[False][1])
+    assert np.sum(np.isfinite(layers[True][0])) > 1000
     for k in mp.FineHeightMap._STATS:
         np.testing.assert_array_equal(maps[True].s[k], maps[False].s[k], err_msg=k)
     for a, b in zip(masks[True], masks[False]):
@@ -511,5 +522,22 @@ def test_fine_map_kernels_equal_the_numpy_code(gate, weighted):
         finally:
             mp.use_compiled_kernels(None)
     assert odd[True][:5] == odd[False][:5] and odd[True][0] == 0
+    # valid_points: organized (strided) and (N, 3), float32 and float64, NaN / inf / edges
+    cloud = rng.normal(0.5, 0.6, (40, 30, 3))
+    cloud[rng.random((40, 30)) < 0.2, rng.integers(0, 3)] = np.nan
+    cloud[rng.random((40, 30)) < 0.05, 2] = np.inf
+    cloud[0, :4, 2] = [0.05, 1.5, np.float32(0.05), np.float32(1.5)]
+    for arr in (cloud, cloud.astype(np.float32)):
+        for stride in (1, 2, 3):
+            for c in (arr, arr.reshape(-1, 3)):
+                got = {}
+                for compiled in (True, False):
+                    mp.use_compiled_kernels(compiled)
+                    try:
+                        got[compiled] = mp.valid_points(c, 0.05, 1.5, stride)
+                    finally:
+                        mp.use_compiled_kernels(None)
+                assert got[True].dtype == got[False].dtype == np.float64
+                np.testing.assert_array_equal(got[True], got[False])
     for k in mp.FineHeightMap._STATS:
         np.testing.assert_array_equal(odd[True][5][k], odd[False][5][k], err_msg=k)
