@@ -129,6 +129,7 @@ class IcpMapperNode(Node):
         self._fine_stamp = None  # stamp of a fused map not yet published
         self.captures = 0
         self._joints: Deque[tuple] = deque(maxlen=2000)   # (stamp [s], q (4, 3))
+        self._pose_msgs: Dict[tuple, object] = {}         # capture pose -> its Pose message
 
         self.pub_pose = self.create_publisher(PoseStamped, '/icp/pose', RELIABLE_QOS)
         self.pub_odom = self.create_publisher(Odometry, '/icp/odom', RELIABLE_QOS)
@@ -255,14 +256,30 @@ class IcpMapperNode(Node):
             return
         self._fine_stamp = stamp
         self._publish_fine()
-        _, poses = self.mapper.capture_poses()
+        stamps, poses = self.mapper.capture_poses()
         arr = PoseArray(header=make_header(c.map_frame, stamp))
-        arr.poses = [matrix_to_pose(T) for T in poses]
+        arr.poses = self._capture_pose_msgs(stamps, poses)
         self.pub_poses.publish(arr)
         if self.mapper.counters['fused'] % c.coarse_publish_every == 1 \
                 or c.coarse_publish_every == 1:
             self.pub_coarse.publish(xyz_to_cloud(self.mapper.coarse_points(), c.map_frame,
                                                  stamp))
+
+    def _capture_pose_msgs(self, stamps: np.ndarray, poses: np.ndarray) -> list:
+        """Pose messages of the kept capture poses. A kept pose never changes, so each is
+        converted once (keyed by its stamp and matrix bytes) instead of all ~200 every
+        capture."""
+        cache = self._pose_msgs
+        out, keep = [], {}
+        for t, T in zip(stamps, poses):
+            key = (float(t), T.tobytes())
+            msg = cache.get(key)
+            if msg is None:
+                msg = matrix_to_pose(T)
+            keep[key] = msg
+            out.append(msg)
+        self._pose_msgs = keep                     # only the poses still kept
+        return out
 
     def _publish_fine(self) -> None:
         # the whole window (~2.5 MB at 300 x 300 x 7) is converted only when someone listens;
