@@ -148,7 +148,7 @@ class _Segment:
     kind: str                     # 'shift', 'swing' or 'probe'
     t0: float
     duration: float
-    spline: CubicSpline           # joint angles (12,) over [0, duration]
+    spline: Optional[CubicSpline]  # joint angles (12,) over [0, duration]; None in dry runs
     body_fn: Callable             # tau -> (x, y, z, yaw, pitch, roll) (odom)
     feet_end: np.ndarray          # (4, 3) contact points at the end (odom)
     body_end: np.ndarray          # (x, y, z, yaw) at the end
@@ -158,6 +158,7 @@ class _Segment:
     feet_fn: Optional[Callable] = None      # tau -> (4, 3) planned contact points (odom)
     knots: Optional[np.ndarray] = None      # (n,) IK knot times [s]
     roll: Optional[np.ndarray] = None       # (n, 4, 3) rolling displacement at the knots
+    q_end: Optional[np.ndarray] = None      # (12,) joint angles at the end (the last knot)
 
     def feet_at(self, tau: float) -> np.ndarray:
         """``(4, 3)`` contact points (odom) at ``tau`` into the segment, rolling included."""
@@ -259,6 +260,7 @@ class WalkingController:
         self._probe_legs: tuple = ()
         self.touchdowns = {'early': 0, 'probed': 0, 'not_found': 0}
         self._R_tilt: Optional[np.ndarray] = None   # measured base tilt (yaw removed)
+        self._dry = False          # check_footsteps: segments without joint splines
         self.last_ik_reasons: tuple = ()
 
     # -- inputs ---------------------------------------------------------------------------
@@ -532,7 +534,7 @@ class WalkingController:
         seg = self._seg
         self._feet = seg.feet_end.copy()
         self._body = seg.body_end.copy()
-        self._q_last = seg.spline(seg.duration)
+        self._q_last = seg.q_end.copy() if seg.spline is None else seg.spline(seg.duration)
         self._phi_ref = _shank_angles(self._q_last.reshape(4, 3))
         if seg.kind == 'swing':
             self.steps_done += len(seg.legs)
@@ -790,8 +792,7 @@ class WalkingController:
                                  f'{names}: ' + '; '.join(self.last_ik_reasons[:2]))
                 return None
         offs = self._com_offsets(body, poses)
-        margins = [gaitlib.support_margin(body[:2] + o, support) for o in offs]
-        got = float(min(margins))
+        got = float(gaitlib.support_margin(body[:2] + offs, support).min())
         if len(stay) >= 3 and got < self.config.min_margin_fraction * margin:
             self._step_error(f'stepping {names}: the COG margin would be {got:.4f} m, below '
                              f'{self.config.min_margin_fraction} x {margin} m with every foot '
@@ -986,9 +987,11 @@ class WalkingController:
                 return None
             roll = self._rolling(res.q, c, s) * rolling[:, None]
         q = res.q.reshape(len(taus), 12)
-        spline = CubicSpline(taus, q, axis=0, bc_type='clamped')
+        # A dry run (check_footsteps) needs the checks and the end state, not the motion.
+        spline = None if self._dry else CubicSpline(taus, q, axis=0, bc_type='clamped')
         seg = _Segment(kind=kind, t0=t0, duration=dur, spline=spline, body_fn=body_fn,
-                       feet_end=None, body_end=None, feet_fn=feet_fn, knots=taus, roll=roll)
+                       feet_end=None, body_end=None, feet_fn=feet_fn, knots=taus, roll=roll,
+                       q_end=q[-1].copy())
         seg.roll_end = roll[-1]
         return seg
 
@@ -1018,6 +1021,7 @@ def check_footsteps(model: RobotModel, config: WalkingConfig, feet: np.ndarray,
     legs = np.asarray(legs, dtype=int).reshape(-1)
     positions = np.asarray(positions, dtype=float).reshape(-1, 3)
     ctl = WalkingController(model, config, height=height)
+    ctl._dry = True
     body = ctl._goal_pose(feet)
     if T_body is not None:
         T_body = np.asarray(T_body, dtype=float)

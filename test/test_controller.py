@@ -236,6 +236,29 @@ def test_upcoming_stance_is_where_a_new_plan_starts():
     assert nxt == legs[done]
 
 
+def test_the_dry_run_without_joint_splines_decides_as_with_them(monkeypatch):
+    """check_footsteps skips the joint splines (the checks and the end state need only the IK
+    knots). On 30 jittered plans, accepted and refused alike, it returns exactly what the
+    same dry run with the splines built returns."""
+    m = load_robot_model('littledog')
+    T = make_T(np.eye(3), [0.0, 0.0, m.standing_height_m])
+    feet = G.nominal_feet_world(m, T)
+    legs, pos = G.straight_footsteps(m, T, 0.3)
+    rng = np.random.default_rng(3)
+    plans = [pos[:4] + rng.normal(0.0, [0.035, 0.035, 0.02], (4, 3)) for _ in range(30)]
+    fast = [check_footsteps(m, WalkingConfig(), feet, legs[:4], p) for p in plans]
+    build = WalkingController._build
+
+    def with_splines(self, *args, **kw):
+        self._dry = False
+        return build(self, *args, **kw)
+    monkeypatch.setattr(WalkingController, '_build', with_splines)
+    slow = [check_footsteps(m, WalkingConfig(), feet, legs[:4], p) for p in plans]
+    assert fast == slow
+    n = [k for k, _ in fast]
+    assert min(n) < 4 and n.count(4) >= 3          # refusals and acceptances both tested
+
+
 def test_check_footsteps_dry_runs_the_controllers_own_refusals():
     m = load_robot_model('littledog')
     T = make_T(np.eye(3), [0.0, 0.0, m.standing_height_m])
