@@ -505,6 +505,13 @@ def cloud_height_normals(points: np.ndarray, resolution_m: float,
     (mean z per ``resolution_m`` cell; see :func:`height_map_normals`). Terrain is a height
     field, so this matches PCA normals at a fraction of the cost."""
     lo = points[:, :2].min(axis=0)
+    k = _kernels
+    if (k is not None and points.dtype == np.float64 and points.ndim == 2
+            and points.shape[1] == 3 and len(points) and np.all(np.isfinite(lo))
+            and np.all(np.isfinite(points[:, :2].max(axis=0)))):
+        # one compiled pass (bitwise the numpy steps below; finite x-y only)
+        return k.cloud_height_normals(np.ascontiguousarray(points), float(lo[0]),
+                                      float(lo[1]), float(resolution_m), int(half_width_cells))
     ij = np.floor((points[:, :2] - lo) / resolution_m).astype(np.int64)
     shape = (int(ij[:, 0].max()) + 1, int(ij[:, 1].max()) + 1)
     lin = ij[:, 0] * shape[1] + ij[:, 1]
@@ -1133,7 +1140,8 @@ class IcpMapper:
         near = z_cam <= c.fine_max_range_m
         if ok is not None:
             near &= ok
-        self.fine.add(_rows(fine_map, near), stamp_s,
+        near_map = _rows(fine_map, near)
+        self.fine.add(near_map, stamp_s,
                       depth_weights(z_cam[near], self.focal_baseline_px_m, c.disparity_sigma_px,
                                     c.depth_sigma_floor_m))
         # coarse model: the capture's sparse points with normals from its own neighbourhood
@@ -1141,7 +1149,8 @@ class IcpMapper:
             in_icp = z_cam <= c.icp_max_range_m
             if ok is not None:
                 in_icp &= ok
-            model_map = _rows(fine_map, in_icp)
+            # (the default ranges are equal: the same rows, gathered once)
+            model_map = near_map if np.array_equal(in_icp, near) else _rows(fine_map, in_icp)
         else:
             model_map = transform_points(T_map_camera, src_camera)
         new = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(model_map))

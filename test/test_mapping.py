@@ -522,6 +522,18 @@ def test_fine_map_kernels_equal_the_numpy_code(gate, weighted):
         finally:
             mp.use_compiled_kernels(None)
     assert odd[True][:5] == odd[False][:5] and odd[True][0] == 0
+    # cloud_height_normals: dense and sparse (missing neighbours) clouds, several half-widths
+    for n_pts, hw in ((20000, 3), (2000, 2), (300, 3), (300, 1), (50, 0)):
+        pts = _noisy_capture(rng, n_pts, size=(0.3, 0.2))
+        got = {}
+        for compiled in (True, False):
+            mp.use_compiled_kernels(compiled)
+            try:
+                got[compiled] = mp.cloud_height_normals(pts, 0.01, hw)
+            finally:
+                mp.use_compiled_kernels(None)
+        np.testing.assert_array_equal(got[True], got[False])
+        assert n_pts < 1000 or np.isfinite(got[True]).all(axis=1).mean() > 0.5
     # valid_points: organized (strided) and (N, 3), float32 and float64, NaN / inf / edges
     cloud = rng.normal(0.5, 0.6, (40, 30, 3))
     cloud[rng.random((40, 30)) < 0.2, rng.integers(0, 3)] = np.nan
