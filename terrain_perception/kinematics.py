@@ -308,12 +308,14 @@ def self_mask(model: RobotModel, q: np.ndarray, points: np.ndarray,
     out = np.zeros(len(flat), dtype=bool)
     lo, hi = np.minimum(a, b).min(axis=0) - r, np.maximum(a, b).max(axis=0) + r
     with np.errstate(invalid='ignore'):
-        # per coordinate (np.all over axis 1 of an (N, 3) mask is several times slower);
-        # lo[k], hi[k] are float64 scalars, so a float32 input is compared as float64
-        box = (flat[:, 0] >= lo[0]) & (flat[:, 0] <= hi[0])
-        for k in (1, 2):
-            box &= (flat[:, k] >= lo[k]) & (flat[:, k] <= hi[k])
-        cand = np.flatnonzero(box)
+        # per coordinate, each on the survivors of the one before (np.all over axis 1 of an
+        # (N, 3) mask is several times slower); lo[k], hi[k] are float64 scalars, so a float32
+        # input is compared as float64. z first: in a camera frame it is the depth, and the
+        # legs are near the camera
+        cand = np.flatnonzero((flat[:, 2] >= lo[2]) & (flat[:, 2] <= hi[2]))
+        for k in (0, 1):
+            v = flat[cand, k]
+            cand = cand[(v >= lo[k]) & (v <= hi[k])]
     if len(cand) == 0:
         return out.reshape(pts.shape[:-1])
     p = flat[cand].astype(np.float64, copy=False)
