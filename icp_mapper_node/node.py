@@ -129,6 +129,7 @@ class IcpMapperNode(Node):
         self._fine_stamp = None  # stamp of a fused map not yet published
         self.captures = 0
         self._joints: Deque[tuple] = deque(maxlen=2000)   # (stamp [s], q (4, 3))
+        self._joint_t: Deque[float] = deque(maxlen=2000)  # the same stamps, for np.fromiter
         self._pose_msgs: Dict[tuple, object] = {}         # capture pose -> its Pose message
 
         self.pub_pose = self.create_publisher(PoseStamped, '/icp/pose', RELIABLE_QOS)
@@ -175,14 +176,16 @@ class IcpMapperNode(Node):
         t = stamp_to_sec(msg.header.stamp)
         if self._joints and t < self._joints[-1][0]:
             self._joints.clear()                    # time went back (a replayed bag restarted)
+            self._joint_t.clear()
         self._joints.append((t, q.reshape(4, 3)))
+        self._joint_t.append(t)
 
     def _self_filter(self, cloud: np.ndarray, t: float) -> np.ndarray:
         """``cloud`` (camera frame) with the points on the robot's legs set to NaN."""
         margin = self.node_cfg.self_filter_margin_m
         if margin < 0 or not self._joints:
             return cloud
-        stamps = np.fromiter((s for s, _ in self._joints), float, len(self._joints))
+        stamps = np.fromiter(self._joint_t, float, len(self._joint_t))
         k = int(np.argmin(np.abs(stamps - t)))
         if abs(stamps[k] - t) > self.node_cfg.self_filter_max_gap_s:
             self.counters.bump('self_filter_no_joint_state',
