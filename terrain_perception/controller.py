@@ -249,6 +249,7 @@ class WalkingController:
         self._t = 0.0
         self._pending_swing: Optional[_Step] = None
         self._last_legs: tuple = ()          # legs of the latest swing started
+        self._recentred_at = -1    # steps_done at the last recentring
         self._phi_ref = None       # (4, 2) shank pitch and roll angles when the contact was set
         self.steps_done = 0
         self.last_margin_m = np.nan
@@ -286,6 +287,7 @@ class WalkingController:
         self._body = np.array([T[0, 3], T[1, 3], T[2, 3], yaw, 0.0, 0.0])
         self._seg = None
         self._pending_swing = None
+        self._recentred_at = -1
         self._queue = []
         self._t = float(t)
         self._still_since = float(t)
@@ -717,13 +719,21 @@ class WalkingController:
         return out
 
     def _recenter(self, t0: float) -> Optional[_Segment]:
-        if not self.config.recenter:
+        """Shift the body back over its feet once the plan is exhausted: once per stance.
+
+        The shift levels the body on the measured tilt (``attitude_gain``), which changes the
+        feet's believed heights and so the next goal pose: recentring again on the same feet
+        would level again on a tilt read while the body still rocks from the last shift, a
+        loop that never ends (the robot never stands still for a new plan) and can rock it
+        over. One recentring per stance (per count of executed steps) ends it."""
+        if not self.config.recenter or self._recentred_at == self.steps_done:
             return None
         goal = self._goal_pose(self._feet)
         if np.linalg.norm(goal[:3] - self._body[:3]) < 2e-3 and \
                 np.abs(goal[3:] - self._body[3:]).max() \
                 < 2e-3:
             return None
+        self._recentred_at = self.steps_done
         return self._shift_segment(goal, t0, legs_swing=())
 
     def _step_error(self, msg: str) -> None:

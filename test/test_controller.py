@@ -236,6 +236,51 @@ def test_upcoming_stance_is_where_a_new_plan_starts():
     assert nxt == legs[done]
 
 
+def _recentrings_with_a_rocking_imu(ctl, t_max=8.0):
+    """Body shifts the controller starts after its two steps are done, over ``t_max`` of
+    simulated time, the IMU reading a roll of +-3 deg that changes sign every 0.3 s whatever
+    the body does (a body rocking from side to side)."""
+    t, q, last, shifts = 0.0, None, None, 0
+    while t < t_max:
+        a = np.radians(3.0) * (1 if int(t / 0.3) % 2 else -1)
+        R = np.array([[1.0, 0.0, 0.0], [0.0, np.cos(a), -np.sin(a)],
+                      [0.0, np.sin(a), np.cos(a)]])
+        q = ctl.update(t, q, attitude=R).positions
+        ph = ctl.phase
+        if ctl.steps_done == 2 and ph is not None and ph != last and ph.kind == 'shift':
+            shifts += 1
+        last = ph
+        t += DT
+    return shifts
+
+
+def test_the_body_is_recentred_once_per_stance(monkeypatch):
+    # Every recentring levels the body on the measured tilt, which changes the feet's believed
+    # heights and so the next goal: recentring again on the same feet goes on while the body
+    # rocks (here an IMU reading +-3 deg alternately; in the rocks walks up to 11 recentrings
+    # in a row), each levelling on the rocking of the last. Once per stance: one shift after
+    # the plan; recentring on every call (the counterfactual): many (measured: 1 vs 16).
+    m = load_robot_model('littledog')
+    T = make_T(np.eye(3), [0.0, 0.0, m.standing_height_m])
+    legs, pos = G.straight_footsteps(m, T, 0.2)
+
+    def fresh():
+        ctl = WalkingController(m, WalkingConfig(plan_timeout_s=1e3))
+        ctl.reset(0.0, None, T)
+        ctl.set_footsteps(legs[:2], pos[:2], 'walk', 0.0)
+        return ctl
+    once = _recentrings_with_a_rocking_imu(fresh())
+    assert once <= 1
+    recenter = WalkingController._recenter
+
+    def every_time(self, t0):
+        self._recentred_at = -1
+        return recenter(self, t0)
+    monkeypatch.setattr(WalkingController, '_recenter', every_time)
+    many = _recentrings_with_a_rocking_imu(fresh())
+    assert many >= 5
+
+
 def test_the_dry_run_without_joint_splines_decides_as_with_them(monkeypatch):
     """check_footsteps skips the joint splines (the checks and the end state need only the IK
     knots). On 30 jittered plans, accepted and refused alike, it returns exactly what the
