@@ -37,6 +37,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help='also walk rocks-6cm on seeds 0..N-1 with ground-truth footsteps, '
                         'with the default planner and controller and with the baseline '
                         f'{ROCKS_BASELINE_NAME!r}; reports crossings, falls and advance')
+    parser.add_argument('--rocks-first-seed', type=int, default=0, metavar='S',
+                        help='first seed of --rocks-seeds (seeds S..S+N-1): seeds 0-7 are the '
+                        'ones the planner and controller defaults were chosen on, so 8 and up '
+                        'are held out')
     parser.add_argument('--rocks-only', action='store_true',
                         help='only the rocks walks (no real-time factor and flat walks)')
 
@@ -124,12 +128,14 @@ def _rocks_walk(course, start_x: float, goal_x: float, seed: int, sensing: bool 
             T = robot.base_pose()
             if T[0, 3] >= goal_x - 0.05 or runner.fell:
                 break
-            feet = robot.foot_positions_world()
-            feet[:, 2] -= m.foot_radius_m
-            # As the planner node does: only the steps the controller's own checks accept.
+            # As the planner node does: from the controller's own stance and body pose (its
+            # /walking/stance; odom = world here), only the steps its own checks accept.
+            feet, _ = runner.controller.upcoming_stance()
+            T_chk = runner.controller.upcoming_body()
             plan = planner.plan_checked(
-                T, goal, feet, lambda legs, pos, feet=feet, T=T: check_footsteps(
-                    m, cfg, feet, legs, pos, 'walk', height, T_body=T), first_leg=next_leg)
+                T, goal, feet, lambda legs, pos, feet=feet, T_chk=T_chk: check_footsteps(
+                    m, cfg, feet, legs, pos, 'walk', height, T_body=T_chk),
+                first_leg=next_leg)
             if not plan.ok:
                 status = f'planner: {plan.status_text}'
                 break
@@ -171,17 +177,20 @@ def _rocks_walk(course, start_x: float, goal_x: float, seed: int, sensing: bool 
             'rtf_walk': res.sim_time_s / wall}
 
 
-def _rocks_seeds(n: int, start_x: float, goal_x: float) -> dict:
-    """The ground-truth-footstep rocks walk on seeds 0..n-1, defaults against the baseline."""
+def _rocks_seeds(n: int, start_x: float, goal_x: float, first: int = 0) -> dict:
+    """The ground-truth-footstep rocks walk on seeds first..first+n-1, defaults against the
+    baseline."""
     from terrain_perception.terrain import make_course
     rows = {'default': [], 'baseline': []}
-    for seed in range(n):
+    seeds = list(range(first, first + n))
+    for seed in seeds:
         course = make_course('rocks-6cm', seed, 0.005)
         rows['default'].append(_rocks_walk(course, start_x, goal_x, seed))
         rows['baseline'].append(_rocks_walk(course, start_x, goal_x, seed,
                                             planner_kw=ROCKS_BASELINE[0],
                                             walking_kw=ROCKS_BASELINE[1]))
-    print(f'\nrocks-6cm, ground-truth footsteps, x {start_x} -> {goal_x} m, seeds 0-{n - 1} '
+    print(f'\nrocks-6cm, ground-truth footsteps, x {start_x} -> {goal_x} m, seeds '
+          f'{seeds[0]}-{seeds[-1]}{" (held out: defaults chosen on 0-7)" if first >= 8 else ""} '
           f'(F = fell, X = crossed); baseline: {ROCKS_BASELINE_NAME} '
           f'(planner {ROCKS_BASELINE[0]}, controller {ROCKS_BASELINE[1]})')
     summary = {}
@@ -193,7 +202,7 @@ def _rocks_seeds(n: int, start_x: float, goal_x: float) -> dict:
             'crossed': int(sum(crossed)),
             'falls': int(sum(r['fell'] for r in rs)),
             'advanced_m_mean': float(np.mean([r['advanced_m'] for r in rs])),
-            'seeds': n}
+            'seeds': n, 'first_seed': first}
         print(f'{name:<9} {marks}  | crossed {summary[name]["crossed"]}/{n}, falls '
               f'{summary[name]["falls"]}, mean advance {summary[name]["advanced_m_mean"]:.2f} m')
     return {'rocks6_seeds': summary, 'rocks6_seed_rows': rows}
@@ -207,7 +216,7 @@ def run(args: argparse.Namespace) -> dict:
     if getattr(args, 'rocks_only', False):
         if n_rocks <= 0:
             raise ValueError('--rocks-only needs --rocks-seeds N (N >= 1)')
-        return _rocks_seeds(n_rocks, 0.4, 2.4)
+        return _rocks_seeds(n_rocks, 0.4, 2.4, int(getattr(args, 'rocks_first_seed', 0)))
     course = make_course('rocks-6cm', seed, 0.005)
 
     rtf_rows = []
@@ -268,5 +277,5 @@ def run(args: argparse.Namespace) -> dict:
         'quick': quick,
     }
     if n_rocks > 0:
-        out.update(_rocks_seeds(n_rocks, 0.4, 2.4))
+        out.update(_rocks_seeds(n_rocks, 0.4, 2.4, int(getattr(args, 'rocks_first_seed', 0))))
     return out
