@@ -10,9 +10,7 @@ Subscriptions:
     /goal_pose       geometry_msgs/PoseStamped (reliable): goal; without one, straight ahead
     /walking/stance  terrain_msgs/Stance (reliable, transient local): the controller's feet
                      after the step in progress and its next leg; plans start from there
-                     (without it: the nominal stance at the pose, first leg free); the dry
-                     run of the controller's checks starts from its body pose there (without
-                     one: the current pose)
+                     (without it: the nominal stance at the pose, first leg free)
 Publications:
     /footstep_plan            terrain_msgs/FootstepPlan (reliable, transient local)
     /footstep_plan/markers    visualization_msgs/MarkerArray (reliable)
@@ -50,8 +48,7 @@ from terrain_perception.grid import GridMap
 from terrain_perception.patches import PatchConfig, PatchSet, find_patches, gravity_in_camera
 from terrain_perception.robot_model import available_robots, load_robot_model
 from terrain_ros.conversions import (cloud_to_xyz, make_header, matrix_to_pose, msg_to_grid,
-                                     msg_to_stance, pose_to_matrix, stamp_to_sec,
-                                     stance_body)
+                                     msg_to_stance, pose_to_matrix, stamp_to_sec)
 from terrain_ros.node import Counters, run_node
 from terrain_ros.params import declare_config
 from terrain_ros.qos import LATCHED_QOS, RELIABLE_QOS, SENSOR_QOS
@@ -245,11 +242,10 @@ class FootstepPlannerNode(Node):
     def _on_stance(self, msg: Stance) -> None:
         try:
             feet, next_leg = msg_to_stance(msg)
-            body = stance_body(msg)
         except ValueError as exc:
             self.counters.bump('bad_stance', f'{exc}; ignored')
             return
-        self.stance = (feet, next_leg, stamp_to_sec(msg.header.stamp), body)
+        self.stance = (feet, next_leg, stamp_to_sec(msg.header.stamp))
 
     def _on_goal(self, msg: PoseStamped) -> None:
         p = msg.pose.position
@@ -336,13 +332,9 @@ class FootstepPlannerNode(Node):
                     abs(self.grid.stamp_s - self.stance[2]) <= self.node_cfg.stance_max_age_s:
                 feet, first_leg = self.stance[0], self.stance[1]
             if feet is not None and self.node_cfg.check_plans:
-                # The controller's own body pose for the next step when it said it: judged from
-                # the current pose instead, a step it will refuse can pass (mid-shift poses).
-                T_check = self.stance[3] if self.stance[3] is not None else self.T_map_base
-
                 def check(legs, positions):
                     return check_footsteps(self.robot, self.walking_cfg, feet, legs, positions,
-                                           'walk', self.grid, T_body=T_check)
+                                           'walk', self.grid, T_body=self.T_map_base)
                 plan = self.planner.plan_checked(self.T_map_base, self.goal_xy, feet, check,
                                                  patches=patches, first_leg=first_leg)
                 if plan.check_note:

@@ -310,17 +310,6 @@ def msg_to_stance(msg: Stance) -> Tuple[np.ndarray, Optional[int]]:
     return feet, None if msg.next_leg == Stance.LEG_NONE else int(msg.next_leg)
 
 
-def stance_body(msg: Stance) -> Optional[np.ndarray]:
-    """``T_map_base`` (4x4) the next step starts from, of a terrain_msgs/Stance; None when it
-    has none (``has_body`` false); ValueError naming the problem for an invalid pose."""
-    if not msg.has_body:
-        return None
-    try:
-        return pose_to_matrix(msg.body)
-    except ValueError as exc:
-        raise ValueError(f'/walking/stance body: {exc}') from None
-
-
 class JointStateError(ValueError):
     """A JointState that does not give the robot's joints; ``key`` names the problem for a
     node's counters."""

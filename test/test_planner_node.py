@@ -175,45 +175,6 @@ def test_plans_start_from_the_controllers_stance(ros_context, executor):
     assert spin_until(executor, lambda: h.node.counters.counts.get('bad_stance', 0) > 0, 5.0)
     assert h.node.stance[1] == Footstep.LEG_RH                 # the good one is kept
 
-
-def test_the_dry_run_starts_from_the_body_pose_the_controller_reports(ros_context, executor):
-    # The controller's dry run (check_footsteps) judges the first step from the body pose the
-    # stance message gives (where the step in progress leaves the body), not the current pose:
-    # a body 12 cm behind and 6 cm beside its feet cannot reach them (not even crouched), so
-    # every step is refused; the same stance
-    # without a body is judged from the current (nominal) pose and gets a full plan. A body
-    # with a zero quaternion is refused and counted.
-    h = Harness(ros_context, executor)
-    h.pose(_pose_T())
-    hh = np.zeros((150, 150))
-    hh[88:102, 75:90] = 0.03                                # walk gait (obstacle ahead)
-    pub = h.io.create_publisher(Stance, '/walking/stance', LATCHED_QOS)
-    feet = np.array(nominal_feet_world(ROBOT, _pose_T()), dtype=float)
-    msg = Stance()
-    msg.header.frame_id = 'map'
-    msg.header.stamp.sec = 1001
-    msg.feet = [Point(x=float(p[0]), y=float(p[1]), z=float(p[2])) for p in feet]
-    msg.next_leg = Footstep.LEG_RH
-    plans = {}
-    for has_body in (False, True):
-        msg.has_body = has_body
-        msg.body = matrix_to_pose(_pose_T(-0.12, 0.06))
-        msg.header.stamp.nanosec = int(has_body)
-        pub.publish(msg)
-        assert spin_until(executor, lambda: h.node.stance is not None
-                          and (h.node.stance[3] is not None) == has_body, 5.0)
-        plans[has_body] = h.send_map(grid_to_msg(_grid(hh)), sec=1001)
-    assert plans[False].status == FootstepPlan.STATUS_OK and len(plans[False].footsteps) == 4
-    assert plans[True].status != FootstepPlan.STATUS_OK
-    assert 'controller would refuse' in plans[True].status_text
-    bad = Stance()
-    bad.feet = msg.feet
-    bad.has_body = True
-    bad.body.orientation.w = 0.0
-    pub.publish(bad)
-    assert spin_until(executor, lambda: h.node.counters.counts.get('bad_stance', 0) > 0, 5.0)
-    assert h.node.stance[3] is not None                       # the good one is kept
-
 def test_bad_inputs_give_explanatory_empty_plans(ros_context, executor):
     h = Harness(ros_context, executor)
     flat = _grid(np.zeros((150, 150)))

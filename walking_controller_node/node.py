@@ -21,8 +21,7 @@ Publications:
                            (reliable); the ICP prior
     /capture_request       std_msgs/Header (reliable): the body is still, take a picture
     /walking/stance        terrain_msgs/Stance (reliable, transient local): feet after the
-                           step in progress, the body pose the next step starts from and the
-                           next leg, in ``map``, on every change
+                           step in progress and the next leg, in ``map``, on every change
     ~/diagnostics          diagnostic_msgs/DiagnosticArray: counters of refused input
 
 Time is the node clock (``use_sim_time`` with the simulator). The odom frame starts equal to
@@ -50,8 +49,7 @@ from terrain_perception.controller import WalkingConfig, WalkingController
 from terrain_perception.robot_model import load_robot_model
 from terrain_perception.transforms import make_T, quat_to_R, rot_z, transform_points
 from terrain_ros.conversions import (JointStateError, joint_state_to_arrays, make_header,
-                                     matrix_to_pose, msg_to_grid, odometry, pose_to_matrix,
-                                     sec_to_stamp)
+                                     msg_to_grid, odometry, pose_to_matrix, sec_to_stamp)
 from terrain_ros.node import Counters, run_node
 from terrain_ros.params import declare_config
 from terrain_ros.qos import LATCHED_QOS, RELIABLE_QOS, SENSOR_QOS
@@ -251,10 +249,8 @@ class WalkingControllerNode(Node):
         if feet is None:
             return
         feet = transform_points(ctl.T_map_odom, feet)
-        T_body = ctl.upcoming_body()
-        T_body = None if T_body is None else ctl.T_map_odom @ T_body
         key = (np.round(feet, 4).tobytes(), next_leg, ctl.steps_done, ctl.pending_steps,
-               ctl.last_error, None if T_body is None else np.round(T_body, 4).tobytes())
+               ctl.last_error)
         if key == self._stance_key:
             return
         self._stance_key = key
@@ -265,9 +261,6 @@ class WalkingControllerNode(Node):
         msg.steps_done = int(ctl.steps_done)
         msg.pending_steps = int(ctl.pending_steps)
         msg.last_error = ctl.last_error
-        if T_body is not None:
-            msg.body = matrix_to_pose(T_body)
-            msg.has_body = True
         self.pub_stance.publish(msg)
 
 
