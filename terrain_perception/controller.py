@@ -479,6 +479,16 @@ class WalkingController:
         order = list(gaitlib.CRAWL_ORDER)
         return feet, order[(order.index(int(last[0])) + 1) % 4]
 
+    def upcoming_body(self) -> Optional[np.ndarray]:
+        """``T_odom_base`` (4x4) the next step starts from: the body pose at the end of the
+        step in progress (the segment under way; a swing or probe holds the body where the
+        shift before it left it), the current one at rest. A dry run of the next plan
+        (:func:`check_footsteps` with ``T_body``) starts here, as this controller will."""
+        if self._body is None:
+            return None
+        body = self._body if self._seg is None else self._seg.body_end
+        return gaitlib.pose_to_T(np.asarray(body, dtype=float))
+
     @property
     def pending_steps(self) -> int:
         """Footsteps (or trot pairs) not yet started."""

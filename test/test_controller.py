@@ -281,6 +281,27 @@ def test_the_body_is_recentred_once_per_stance(monkeypatch):
     assert many >= 5
 
 
+def test_upcoming_body_is_where_the_step_under_way_leaves_the_body():
+    # At rest: the current pose. During the body shift before a swing: the pose the shift
+    # ends at (the swing keeps it), which is where the body is once the shift is done.
+    m = load_robot_model('littledog')
+    T = make_T(np.eye(3), [0.0, 0.0, m.standing_height_m])
+    legs, pos = G.straight_footsteps(m, T, 0.2)
+    ctl = WalkingController(m, WalkingConfig(plan_timeout_s=1e3))
+    ctl.reset(0.0, None, T)
+    np.testing.assert_allclose(ctl.upcoming_body(), T, atol=1e-12)
+    ctl.set_footsteps(legs[:1], pos[:1], 'walk', 0.0)
+    q = ctl.update(0.0).positions
+    assert ctl.phase.kind == 'shift'
+    expected = ctl.upcoming_body()
+    assert np.linalg.norm(expected[:2, 3] - T[:2, 3]) > 0.005      # the COG shift
+    t = 0.0
+    while ctl.phase is not None and ctl.phase.kind == 'shift':
+        t += DT
+        q = ctl.update(t, q).positions
+    np.testing.assert_allclose(ctl.odom_pose, expected, atol=1e-9)
+
+
 def test_the_dry_run_without_joint_splines_decides_as_with_them(monkeypatch):
     """check_footsteps skips the joint splines (the checks and the end state need only the IK
     knots). On 30 jittered plans, accepted and refused alike, it returns exactly what the
