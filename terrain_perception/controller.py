@@ -724,8 +724,10 @@ class WalkingController:
         The shift levels the body on the measured tilt (``attitude_gain``), which changes the
         feet's believed heights and so the next goal pose: recentring again on the same feet
         would level again on a tilt read while the body still rocks from the last shift, a
-        loop that never ends (the robot never stands still for a new plan) and can rock it
-        over. One recentring per stance (per count of executed steps) ends it."""
+        loop that can go on (11 recentrings in a row on one stance in a rocks walk) and keeps
+        the body rocking. So it recentres once per count of executed steps. (A step cancelled
+        after its body shift, when the body was already recentred at that count, leaves the
+        body where the shift put it, inside the support triangle, until the next plan.)"""
         if not self.config.recenter or self._recentred_at == self.steps_done:
             return None
         goal = self._goal_pose(self._feet)
