@@ -17,12 +17,12 @@ Positions are foot-sphere centres in ``base_link`` [m]; angles [rad]. Joint arra
 from __future__ import annotations
 
 import logging
-import os
 from dataclasses import dataclass
 from typing import Optional
 
 import numpy as np
 
+from terrain_perception.compiled import load_compiled
 from terrain_perception.robot_model import LEG_NAMES, LEG_SIDE, RobotModel
 
 _EPS_REACH = 1e-9    # [m] tolerance on reach checks (numerical round-off only)
@@ -33,14 +33,7 @@ _LOG = logging.getLogger(__name__)
 def _load_ik_kernel():
     """The compiled IK (terrain_perception._ik_kernel), or None for the numpy code
     (``TERRAIN_IK_NUMBA=0``, or numba missing: logged once)."""
-    if os.environ.get('TERRAIN_IK_NUMBA', '1').strip().lower() in ('0', 'false', 'no', 'off'):
-        return None
-    try:
-        from terrain_perception import _ik_kernel
-    except ImportError as e:
-        _LOG.warning('leg IK: numba is not available (%s); using the numpy code', e)
-        return None
-    return _ik_kernel
+    return load_compiled('_ik_kernel', 'TERRAIN_IK_NUMBA', 'leg IK', _LOG)
 
 
 _ik = _load_ik_kernel()

@@ -27,7 +27,6 @@ from __future__ import annotations
 
 import collections
 import logging
-import os
 from dataclasses import dataclass
 from typing import Deque, Dict, Optional, Tuple
 
@@ -35,6 +34,7 @@ import numpy as np
 import open3d as o3d
 from scipy.spatial.transform import Rotation, Slerp
 
+from terrain_perception.compiled import load_compiled
 from terrain_perception.config import param
 from terrain_perception.grid import ELEVATION, OBSERVED, VARIANCE, GridMap
 from terrain_perception.transforms import angle_between, invert, transform_points
@@ -51,15 +51,7 @@ _LOG = logging.getLogger(__name__)
 def _load_kernels():
     """The compiled fine-map kernels (terrain_perception._mapping_kernels), or None for the
     numpy code (``TERRAIN_MAPPING_NUMBA=0``, or numba missing: logged once)."""
-    if os.environ.get('TERRAIN_MAPPING_NUMBA', '1').strip().lower() in ('0', 'false', 'no',
-                                                                       'off'):
-        return None
-    try:
-        from terrain_perception import _mapping_kernels
-    except ImportError as e:
-        _LOG.warning('fine map: numba is not available (%s); using the numpy code', e)
-        return None
-    return _mapping_kernels
+    return load_compiled('_mapping_kernels', 'TERRAIN_MAPPING_NUMBA', 'fine map', _LOG)
 
 
 _kernels = _load_kernels()

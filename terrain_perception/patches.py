@@ -32,7 +32,6 @@ import dataclasses
 import functools
 import logging
 import math
-import os
 import threading
 from dataclasses import dataclass
 from typing import Dict, Optional
@@ -41,6 +40,7 @@ import cv2
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from terrain_perception.compiled import load_compiled
 from terrain_perception.config import param
 
 _LOG = logging.getLogger(__name__)
@@ -146,15 +146,8 @@ _kernels_lock = threading.Lock()
 
 def _load_kernels():
     """The compiled kernels module, or None (numba missing: logged once, numpy steps used)."""
-    if os.environ.get('TERRAIN_PATCHES_NUMBA', '1').strip().lower() in ('0', 'false', 'no', 'off'):
-        return None
-    try:
-        from terrain_perception import _patch_kernels
-    except ImportError as e:
-        _LOG.warning('contact patches: numba is not available (%s); using the numpy reference '
-                     'steps, ~40 %% slower', e)
-        return None
-    return _patch_kernels
+    return load_compiled('_patch_kernels', 'TERRAIN_PATCHES_NUMBA', 'contact patches', _LOG,
+                         'using the numpy reference steps, ~40 % slower')
 
 
 _kernels = _load_kernels()
