@@ -295,27 +295,29 @@ def fine_layers(s_n, s_w, s_mean, s_m2, s_min, s_max, s_last, s_sx, s_sy, s_sxx,
             last[c] = nan
 
 
+@njit(inline='always', **_JIT)
+def _keeps(cloud, i, j, lo, hi):
+    x = np.float64(cloud[i, j, 0])
+    y = np.float64(cloud[i, j, 1])
+    z = np.float64(cloud[i, j, 2])
+    return np.isfinite(x) and np.isfinite(y) and np.isfinite(z) and z >= lo and z <= hi
+
+
 def _valid_points(cloud, lo, hi):
-    n = 0
+    # two passes (count, then fill) so the output is allocated once at its size
     H, W = cloud.shape[0], cloud.shape[1]
+    n = 0
     for i in range(H):
         for j in range(W):
-            x = np.float64(cloud[i, j, 0])
-            y = np.float64(cloud[i, j, 1])
-            z = np.float64(cloud[i, j, 2])
-            if np.isfinite(x) and np.isfinite(y) and np.isfinite(z) and z >= lo and z <= hi:
+            if _keeps(cloud, i, j, lo, hi):
                 n += 1
     out = np.empty((n, 3))
     k = 0
     for i in range(H):
         for j in range(W):
-            x = np.float64(cloud[i, j, 0])
-            y = np.float64(cloud[i, j, 1])
-            z = np.float64(cloud[i, j, 2])
-            if np.isfinite(x) and np.isfinite(y) and np.isfinite(z) and z >= lo and z <= hi:
-                out[k, 0] = x
-                out[k, 1] = y
-                out[k, 2] = z
+            if _keeps(cloud, i, j, lo, hi):
+                for c in range(3):
+                    out[k, c] = np.float64(cloud[i, j, c])
                 k += 1
     return out
 
