@@ -7,6 +7,7 @@ same arithmetic.
 """
 
 import numpy as np
+from scipy import ndimage
 
 from terrain_perception.ground_plane import (GroundPlaneConfig, _lsq_plane, _three_distinct,
                                              plane_from_normal)
@@ -58,3 +59,23 @@ def fit_ground_plane(points, config=GroundPlaneConfig(), rng=None):
         raise ValueError(f'ground plane: best plane holds only {100 * ratio:.1f}% of the '
                          f'points (< {100 * config.min_inlier_ratio:.1f}%)')
     return plane_from_normal(n, d, count, ratio)
+
+
+def contact_support(grid, feet, radius_m):
+    """terrain_perception.fill._contact_support before it worked on the box around the feet
+    (commit cae4135)."""
+    A = np.c_[feet[:, :2], np.ones(len(feet))]
+    coef, *_ = np.linalg.lstsq(A, feet[:, 2], rcond=None)
+    nx, ny = grid.shape
+    r = grid.resolution_m
+    x = grid.origin_xy[0] + (np.arange(nx) + 0.5) * r
+    y = grid.origin_xy[1] + (np.arange(ny) + 0.5) * r
+    X, Y = np.meshgrid(x, y, indexing='ij')
+    d2 = np.min((X[..., None] - feet[:, 0]) ** 2 + (Y[..., None] - feet[:, 1]) ** 2, axis=-1)
+    return d2 <= radius_m ** 2, coef[0] * X + coef[1] * Y + coef[2]
+
+
+def dilate(mask, m):
+    """What TerrainFiller.update did for the refill margin before fill._dilate (cae4135)."""
+    return ndimage.binary_dilation(mask, np.ones((2 * m + 1, 2 * m + 1), bool))
+

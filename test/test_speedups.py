@@ -6,8 +6,11 @@ import numpy as np
 import pytest
 
 import speedup_reference as ref
+import terrain_perception.fill as fillmod
 from terrain_perception.bench.stereo import (_body_pose, _course_scene, render_pair,
                                              robot_num_disparities)
+from terrain_perception.fill import CONTACT, TerrainFiller
+from terrain_perception.grid import ELEVATION
 from terrain_perception.ground_plane import GroundPlaneConfig, fit_ground_plane
 from terrain_perception.robot_model import load_robot_model
 from terrain_perception.stereo import StereoConfig, StereoPipeline
@@ -77,3 +80,79 @@ def test_ground_plane_equals_the_previous_code_on_edge_cases():
             assert a == b
         else:
             assert_same_plane(a, b)
+
+
+# --- terrain fill ----------------------------------------------------------------------------
+@pytest.fixture(scope='module')
+def walk():
+    """LittleDog walking over rocks-6cm with a range sensor: the 3 m x 1 cm moving fine maps
+    and capture poses of the fill benchmark (12 captures), stance feet under the body."""
+    from terrain_perception.bench.fill import walk_maps
+    truth, seq = walk_maps(12)
+    rm = load_robot_model('littledog')
+    T_cam_base = np.linalg.inv(rm.T_base_camera)
+    out = []
+    for grid, T in seq:
+        base = (T @ T_cam_base)[:3, 3]
+        xy = base[:2] + np.array([[0.1, 0.07], [0.1, -0.07], [-0.1, 0.07], [-0.1, -0.07]])
+        ij = truth.world_to_index(xy)
+        z = np.asarray(truth[ELEVATION], np.float64)[ij[:, 0], ij[:, 1]]
+        out.append((grid, T, np.c_[xy, z]))
+    return out
+
+
+def fill_library():
+    from scipy import ndimage
+    rng = np.random.default_rng(5)
+    return [0.06 * ndimage.gaussian_filter(rng.normal(size=(100, 100)), 2.0) for _ in range(3)]
+
+
+def run_filler(walk, feet_every=1):
+    filler = TerrainFiller(fill_library(), 0.01)
+    outs, poses = [], []
+    for k, (grid, T, feet) in enumerate(walk):
+        poses.append(T)
+        out = filler.update(grid, np.array(poses), feet if k % feet_every == 0 else None)
+        outs.append((dict(out.layers), filler.last_region, filler.last_refilled))
+    return outs
+
+
+def test_fill_updates_equal_the_previous_code_on_a_walk(walk, monkeypatch):
+    new = run_filler(walk, feet_every=2)
+    with monkeypatch.context() as m:
+        m.setattr(fillmod, '_contact_support', ref.contact_support)
+        m.setattr(fillmod, '_dilate', ref.dilate)
+        old = run_filler(walk, feet_every=2)
+    assert sum(o[2] for o in old) > 1000                    # cells refilled over the walk
+    assert any(o[0][CONTACT].any() for o in old)            # the stance plane was used
+    for (a, ra, na), (b, rb, nb) in zip(new, old):
+        assert (ra, na) == (rb, nb)
+        assert a.keys() == b.keys()
+        for name in a:
+            assert a[name].dtype == b[name].dtype
+            np.testing.assert_array_equal(a[name], b[name], err_msg=name)   # NaN == NaN
+
+
+def test_contact_support_equals_the_previous_code(walk):
+    grid = walk[5][0]
+    feet = walk[5][2]
+    rng = np.random.default_rng(2)
+    cases = [feet, feet + [[1.4, 0, 0]], feet + [[5.0, 0, 0]],      # partly, wholly off the grid
+             feet + rng.normal(0, 0.3, feet.shape), feet[:3]]
+    for f in cases:
+        for radius in (0.0, 0.004, 0.06, 0.5, 4.0):
+            mask, z = fillmod._contact_support(grid, f, radius)
+            mask0, z0 = ref.contact_support(grid, f, radius)
+            np.testing.assert_array_equal(mask, mask0)
+            np.testing.assert_array_equal(z[mask], z0[mask])
+
+
+def test_dilate_equals_binary_dilation():
+    rng = np.random.default_rng(3)
+    for shape, p in (((300, 300), 0.001), ((50, 70), 0.02), ((1, 9), 0.3), ((40, 40), 0.0)):
+        mask = rng.random(shape) < p
+        mask[0, -1] = True                                  # a corner: the border is False
+        for m in (1, 3, 10) + ((80,) if mask.size < 5000 else ()):     # 80: beyond the grid
+            np.testing.assert_array_equal(fillmod._dilate(mask, m), ref.dilate(mask, m))
+        np.testing.assert_array_equal(fillmod._dilate(mask.T, 2), ref.dilate(mask.T, 2))
+
