@@ -11,6 +11,7 @@ from scipy import ndimage
 
 from terrain_perception.ground_plane import (GroundPlaneConfig, _lsq_plane, _three_distinct,
                                              plane_from_normal)
+from terrain_ros.conversions import pose_to_matrix
 
 
 def fit_ground_plane(points, config=GroundPlaneConfig(), rng=None):
@@ -79,3 +80,7 @@ def dilate(mask, m):
     """What TerrainFiller.update did for the refill margin before fill._dilate (cae4135)."""
     return ndimage.binary_dilation(mask, np.ones((2 * m + 1, 2 * m + 1), bool))
 
+
+def pose_matrices(poses):
+    """TerrainFillNode's conversion of /map/capture_poses before its cache (cae4135)."""
+    return np.array([pose_to_matrix(p) for p in poses]).reshape(-1, 4, 4)

@@ -156,3 +156,39 @@ def test_dilate_equals_binary_dilation():
             np.testing.assert_array_equal(fillmod._dilate(mask, m), ref.dilate(mask, m))
         np.testing.assert_array_equal(fillmod._dilate(mask.T, 2), ref.dilate(mask.T, 2))
 
+
+def test_fill_node_pose_conversion_equals_the_previous_code(ros_context, walk):
+    from geometry_msgs.msg import Pose
+
+    from terrain_fill_node.node import TerrainFillNode
+    from terrain_ros.conversions import matrix_to_pose
+    node = TerrainFillNode(context=ros_context)
+    try:
+        poses = [matrix_to_pose(T) for _, T, _ in walk]
+        signed_zero = Pose()
+        signed_zero.orientation.w = 1.0
+        negative_zero = Pose()
+        negative_zero.position.x = -0.0
+        negative_zero.orientation.w = 1.0
+        negative_zero.orientation.z = -0.0
+        # growing lists as the mapper publishes them, a dropped pose, zeros of either sign
+        for msg in (poses[:3], poses[:8], poses[2:12], [signed_zero] + poses,
+                    [negative_zero] + poses, []):
+            got = node._pose_matrices(msg)
+            want = ref.pose_matrices(msg)
+            assert got.shape == want.shape
+            assert got.tobytes() == want.tobytes()          # -0.0 kept apart from 0.0
+        bad = Pose()
+        bad.orientation.w = 0.0                             # zero quaternion
+        for msg in ([bad], poses[:4] + [bad]):
+            with pytest.raises(ValueError, match='quaternion'):
+                ref.pose_matrices(msg)
+            with pytest.raises(ValueError, match='quaternion'):
+                node._pose_matrices(msg)
+        nan = matrix_to_pose(walk[0][1])
+        nan.position.y = float('nan')
+        with pytest.raises(ValueError, match='position'):
+            node._pose_matrices(poses[:2] + [nan])
+        assert node._pose_matrices(poses[:2]).tobytes() == ref.pose_matrices(poses[:2]).tobytes()
+    finally:
+        node.destroy_node()
