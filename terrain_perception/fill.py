@@ -53,13 +53,42 @@ positions in row-major order): ``pos = floor(u * total_positions)``.
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass
 from typing import Optional, Sequence, Tuple
 
 import numpy as np
 from scipy import ndimage
 
+from terrain_perception.compiled import load_compiled
 from terrain_perception.config import param
+
+_LOG = logging.getLogger(__name__)
+
+
+def _load_kernels():
+    """The compiled choice step (terrain_perception._fill_kernels), or None for the numpy
+    code (``TERRAIN_FILL_NUMBA=0``, or numba missing: logged once)."""
+    return load_compiled('_fill_kernels', 'TERRAIN_FILL_NUMBA', 'Fill-Terrain', _LOG)
+
+
+_kernels = _load_kernels()
+
+
+def use_compiled_kernels(enabled: Optional[bool] = True) -> bool:
+    """Select the compiled choice step (``True``), the numpy code (``False``) or the default
+    (``None``) for the following fills, process-wide; returns whether compiled is on. Both
+    give bitwise the same fills."""
+    global _kernels
+    if enabled is None:
+        _kernels = _load_kernels()
+    elif enabled:
+        from terrain_perception import _fill_kernels
+        _kernels = _fill_kernels
+    else:
+        _kernels = None
+    return _kernels is not None
+
 
 FILL_METHODS = ('fill_terrain', 'texture_synthesis', 'constraints_as_heights', 'constant',
                 'inpaint', 'shao_rows', 'none')
@@ -530,16 +559,22 @@ def _choose(A, B, Abar, C, W):
          + b * b * WB.sum(1)[:, None])
     centre = C.shape[2] // 2
     h = C[:, :, centre] + b
-    # feasibility (v_k = 0) needs only the largest excess of the patch over the bound
-    ok = np.ones(b.shape, bool)
-    bounded = np.isfinite(Abar).any(1)
-    if bounded.all():
-        ok = (C - Abar[:, None, :]).max(2) + b <= 0.0
-    elif bounded.any():
-        excess = (C[bounded] - Abar[bounded][:, None, :]).max(2)       # (Sb, n)
-        ok[bounded] = excess + b[bounded] <= 0.0
-    any_ok = ok.any(1)
-    k = np.argmin(np.where(ok, s, np.inf), 1)
+    if _kernels is not None:
+        k = np.empty(len(b), np.int64)
+        any_ok = np.empty(len(b), bool)
+        c = np.ascontiguousarray
+        _kernels.feasible_argmin(c(C), c(Abar), c(b), c(s), k, any_ok)
+    else:
+        # feasibility (v_k = 0) needs only the largest excess of the patch over the bound
+        ok = np.ones(b.shape, bool)
+        bounded = np.isfinite(Abar).any(1)
+        if bounded.all():
+            ok = (C - Abar[:, None, :]).max(2) + b <= 0.0
+        elif bounded.any():
+            excess = (C[bounded] - Abar[bounded][:, None, :]).max(2)   # (Sb, n)
+            ok[bounded] = excess + b[bounded] <= 0.0
+        any_ok = ok.any(1)
+        k = np.argmin(np.where(ok, s, np.inf), 1)
     if not any_ok.all():
         bad = ~any_ok
         over = np.maximum(C[bad] + b[bad][:, :, None] - Abar[bad][:, None, :], 0.0)

@@ -192,3 +192,94 @@ def test_fill_node_pose_conversion_equals_the_previous_code(ros_context, walk):
         assert node._pose_matrices(poses[:2]).tobytes() == ref.pose_matrices(poses[:2]).tobytes()
     finally:
         node.destroy_node()
+
+
+def test_fill_kernel_equals_the_numpy_choice_on_a_walk(walk):
+    """The compiled choice step (TERRAIN_FILL_NUMBA, the default) against the numpy code it
+    replaces, kept in fill._choose: the whole walk, bitwise."""
+    try:
+        fillmod.use_compiled_kernels(True)
+        new = run_filler(walk, feet_every=3)
+        fillmod.use_compiled_kernels(False)
+        old = run_filler(walk, feet_every=3)
+    finally:
+        fillmod.use_compiled_kernels(None)
+    assert sum(o[2] for o in old) > 1000
+    for (a, ra, na), (b, rb, nb) in zip(new, old):
+        assert (ra, na) == (rb, nb)
+        for name in a:
+            np.testing.assert_array_equal(a[name], b[name], err_msg=name)
+
+
+def test_fill_kernel_equals_the_numpy_choice_on_nan_and_inf():
+    """Blocks of cells with no bound, some bounds, NaN/-inf bounds, NaN/inf errors, ties and
+    cells where no sample is feasible: same heights and sample indices."""
+    rng = np.random.default_rng(4)
+    S, n, q = 40, 30, 25
+    W = fillmod.gaussian_weights(5, 1.5).ravel()
+    A = rng.normal(0, 0.01, (S, q))
+    B = rng.random((S, q)) < 0.6
+    B[:, 0] = True
+    C = np.round(rng.normal(0, 0.01, (S, n, q)), 3)        # coarse values: ties in s
+    C[5] = C[5, :1]                                         # one cell: all samples equal
+    Abar = np.where(rng.random((S, q)) < 0.3, rng.normal(0.01, 0.01, (S, q)), np.inf)
+    Abar[:10] = np.inf                                      # unbounded cells
+    Abar[10, 3] = np.nan
+    Abar[11, :] = np.nan
+    Abar[12, 7] = -np.inf
+    Abar[13] = -1.0                                         # nothing feasible
+    A[14, 2] = np.inf                                       # s, h inf/NaN
+    A[15, 0] = np.nan
+    cases = [(A, B, Abar, C), (A[:10], B[:10], Abar[:10], C[:10]),
+             (A[10:], B[10:], Abar[10:], C[10:])]
+    with np.errstate(invalid='ignore', over='ignore'):
+        for a, bb, ab, c in cases:
+            try:
+                fillmod.use_compiled_kernels(True)
+                h1, k1 = fillmod._choose(a, bb, ab, c, W)
+                fillmod.use_compiled_kernels(False)
+                h0, k0 = fillmod._choose(a, bb, ab, c, W)
+            finally:
+                fillmod.use_compiled_kernels(None)
+            np.testing.assert_array_equal(k1, k0)
+            np.testing.assert_array_equal(h1, h0)
+
+
+def numpy_feasible_argmin(C, Abar, b, s):
+    """The numpy lines of fill._choose that _fill_kernels.feasible_argmin replaces."""
+    ok = np.ones(b.shape, bool)
+    bounded = np.isfinite(Abar).any(1)
+    if bounded.all():
+        ok = (C - Abar[:, None, :]).max(2) + b <= 0.0
+    elif bounded.any():
+        excess = (C[bounded] - Abar[bounded][:, None, :]).max(2)
+        ok[bounded] = excess + b[bounded] <= 0.0
+    return np.argmin(np.where(ok, s, np.inf), 1), ok.any(1)
+
+
+def test_feasible_argmin_kernel_on_exact_ties_nan_and_inf():
+    """Values on a 1/8 lattice, so that excess + b == 0 and ties in s happen often; NaN and
+    inf in the patches, bounds and errors; all-bounded, unbounded and mixed blocks."""
+    from terrain_perception import _fill_kernels
+    rng = np.random.default_rng(6)
+    S, n, q = 200, 20, 9
+    special = np.array([np.nan, np.inf, -np.inf])
+    for trial in range(20):
+        C = rng.integers(-4, 5, (S, n, q)) / 8.0
+        Abar = rng.integers(-2, 5, (S, q)) / 8.0
+        b = rng.integers(-4, 5, (S, n)) / 8.0
+        s = rng.integers(0, 6, (S, n)) / 8.0
+        for arr, p in ((C, 0.002), (Abar, 0.05), (s, 0.02)):
+            hit = rng.random(arr.shape) < p
+            arr[hit] = rng.choice(special, int(hit.sum()))
+        if trial % 3 == 1:
+            Abar[rng.random(S) < 0.5] = np.inf                  # mixed blocks
+        elif trial % 3 == 2:
+            Abar[:] = np.inf                                    # no bound at all
+        k = np.empty(S, np.int64)
+        any_ok = np.empty(S, bool)
+        with np.errstate(invalid='ignore'):
+            _fill_kernels.feasible_argmin(C, Abar, b, s, k, any_ok)
+            k0, any0 = numpy_feasible_argmin(C, Abar, b, s)
+        np.testing.assert_array_equal(any_ok, any0)
+        np.testing.assert_array_equal(k, k0)
