@@ -46,6 +46,12 @@ class WalkingConfig:
                                     0.0, 10.0)
     shift_duration_s: float = param(0.0, 'Duration of one body shift [s] (0 = profile)',
                                     0.0, 10.0)
+    shift_zmp_offset_m: float = param(
+        0.005, 'A body shift lasts at least long enough that its acceleration moves the ZMP at '
+        'most this far from the COM\'s ground projection (cart-table model, h a / g, with the '
+        'min-jerk peak acceleration 5.77 d / T^2): a quasi-static gait needs it well inside the '
+        'stability margin; the profile\'s 0.35 s shifts reach 3.4 cm on flat ground [m] '
+        '(0 = shift_duration_s alone)', 0.0, 0.5)
     trot_swing_fraction: float = param(0.7, 'Trot swing duration as a fraction of the crawl '
                                        'swing [-]', 0.1, 1.0)
     trot_max_step_fraction: float = param(1.0, 'Refuse trot pairs with a step longer than this '
@@ -885,6 +891,11 @@ class WalkingController:
         dur = self.shift_s * float(np.clip(np.linalg.norm(delta[:2]) / max(
             0.25 * self.model.body_move_per_period_m, 1e-6), 0.3, 1.0))
         feet0 = self._feet.copy()
+        e = self.config.shift_zmp_offset_m
+        if e > 0.0:
+            h = max(float(start[2] - feet0[:, 2].mean()), 0.5 * self.model.standing_height_m)
+            peak = 10.0 / np.sqrt(3.0) * float(np.linalg.norm(delta[:2]))   # a_max T^2
+            dur = max(dur, float(np.sqrt(peak * h / (9.81 * e))))
         # Levelling only on four feet before a crawl swing (or at rest): the trot's body
         # rocks about the support diagonal, and correcting that rocking makes it worse.
         feet = self._levelled_feet() if len(legs_swing) <= 1 else feet0

@@ -408,3 +408,38 @@ def test_body_tilt_follows_a_foot_only_as_far_as_the_map_under_it_allows():
     # touchdown_depth_m below it): the pitch of a ledge that much high
     dz = tol + WalkingConfig().touchdown_depth_m
     assert pitches['flat'] == pytest.approx(-np.arctan2(dz, spacing), abs=2e-3)
+
+
+def _shift_zmp_offsets(cfg):
+    """Largest ZMP excursion (cart-table: h |a| / g) of the desired body over each crawl body
+    shift of a straight 0.4 m walk, and the walk's duration."""
+    m = load_robot_model('littledog')
+    ctl = WalkingController(m, cfg)
+    T0 = make_T(np.eye(3), [0.0, 0.0, m.standing_height_m])
+    ctl.reset(0.0, None, T0)
+    legs, pos = G.straight_footsteps(m, T0, 0.4)
+    ctl.set_footsteps(legs, pos, 'walk', 0.0)
+    rows = []
+    _run(ctl, 0.0, 300.0, lambda t, cmd: rows.append(
+        (t, ctl.phase.kind if ctl.phase else '', *ctl.odom_pose[:3, 3])))
+    t = np.array([r[0] for r in rows])
+    kind = np.array([r[1] for r in rows])
+    p = np.array([r[2:] for r in rows])
+    acc = np.gradient(np.gradient(p[:, :2], t, axis=0), t, axis=0)
+    h = p[:, 2] - 0.0                                  # flat ground at z = 0
+    zmp = h * np.linalg.norm(acc, axis=1) / 9.81
+    inner = (kind == 'shift') & np.r_[False, kind[:-1] == 'shift'] & np.r_[kind[1:] == 'shift',
+                                                                            False]
+    assert ctl.steps_done == len(legs) and ctl.last_error == ''
+    return float(zmp[inner].max()), float(t[-1])
+
+
+def test_body_shifts_keep_the_zmp_within_the_bound():
+    fast, t_fast = _shift_zmp_offsets(WalkingConfig(plan_timeout_s=1e3,
+                                                    shift_zmp_offset_m=0.0))
+    slow, t_slow = _shift_zmp_offsets(WalkingConfig(plan_timeout_s=1e3))   # default 5 mm
+    # The profile's fixed 0.35 s shifts swing the ZMP centimetres off the COM (the stability
+    # margin is 1.5 cm); the bounded ones stay within 5 mm (+3 % for the numeric derivative).
+    assert fast > 0.012
+    assert slow <= 0.005 * 1.03
+    assert t_slow > t_fast
