@@ -415,14 +415,21 @@ def test_content_after_short_walk(graph):
     on_rocks = steps[(steps[:, 1] >= g.course.rough_x0_m + 0.02)
                      & (steps[:, 1] <= g.course.rough_x1_m)]
     assert len(on_rocks) >= 4, f'only {len(on_rocks)} planned footholds on the rocks'
-    chosen = float(np.nanmean(truth.sample('cost', on_rocks[:, 1:3])))
+    chosen_each = truth.sample('cost', on_rocks[:, 1:3])
+    chosen = float(np.nanmean(chosen_each))
+    if artifacts:                       # the footholds this test scored, and their true cost
+        np.savez(Path(artifacts) / 'footholds.npz', steps=on_rocks, true_cost=chosen_each,
+                 truth_cost=truth['cost'], origin=truth.origin_xy, res=truth.resolution_m)
     xs, ys = truth.cell_centers()
     rx = (xs >= g.course.rough_x0_m + 0.05) & (xs <= g.course.rough_x0_m + 0.4)
     ry = np.abs(ys) <= 0.15
     region = truth['cost'][np.ix_(rx, ry)]
     typical = float(np.nanmean(region))
     assert chosen <= 0.5 * typical, (f'planned footholds cost {chosen:.3f} on the true '
-                                     f'terrain, the rocks around them {typical:.3f} on average')
+                                     f'terrain, the rocks around them {typical:.3f} on average '
+                                     f'(footholds: {len(on_rocks)}, median cost '
+                                     f'{np.nanmedian(chosen_each):.3f}, above the rocks\' mean: '
+                                     f'{np.mean(chosen_each > typical):.0%})')
     assert not fall_mask(d.gt_T[-50:], d.true_terrain, g.model.body_size_m).any(), 'fell'
     # Graph still intact
     states = g.launcher.node_states()
