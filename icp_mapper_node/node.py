@@ -49,7 +49,7 @@ from terrain_perception.config import param
 from terrain_perception.kinematics import self_mask
 from terrain_perception.mapping import IcpMapper, MapperConfig, OdometryGate, PoseBuffer
 from terrain_perception.robot_model import load_robot_model
-from terrain_ros.conversions import (JointStateError, cloud_to_xyz, grid_to_msg,
+from terrain_ros.conversions import (ConvertOnce, JointStateError, cloud_to_xyz, grid_to_msg,
                                      joint_state_to_arrays, make_header, matrix_to_pose,
                                      odometry, pose_stamped, pose_to_matrix, stamp_to_sec,
                                      xyz_to_cloud)
@@ -130,7 +130,8 @@ class IcpMapperNode(Node):
         self.captures = 0
         self._joints: Deque[tuple] = deque(maxlen=2000)   # (stamp [s], q (4, 3))
         self._joint_t: Deque[float] = deque(maxlen=2000)  # the same stamps, for np.fromiter
-        self._pose_msgs: Dict[tuple, object] = {}         # capture pose -> its Pose message
+        self._pose_msgs = ConvertOnce(lambda tT: (float(tT[0]), tT[1].tobytes()),
+                                      lambda tT: matrix_to_pose(tT[1]))  # -> Pose msg
 
         self.pub_pose = self.create_publisher(PoseStamped, '/icp/pose', RELIABLE_QOS)
         self.pub_odom = self.create_publisher(Odometry, '/icp/odom', RELIABLE_QOS)
@@ -269,20 +270,9 @@ class IcpMapperNode(Node):
                                                  stamp))
 
     def _capture_pose_msgs(self, stamps: np.ndarray, poses: np.ndarray) -> list:
-        """Pose messages of the kept capture poses. A kept pose never changes, so each is
-        converted once (keyed by its stamp and matrix bytes) instead of all ~200 every
-        capture."""
-        cache = self._pose_msgs
-        out, keep = [], {}
-        for t, T in zip(stamps, poses):
-            key = (float(t), T.tobytes())
-            msg = cache.get(key)
-            if msg is None:
-                msg = matrix_to_pose(T)
-            keep[key] = msg
-            out.append(msg)
-        self._pose_msgs = keep                     # only the poses still kept
-        return out
+        """Pose messages of the kept capture poses, each converted once (keyed by its stamp
+        and matrix bytes) instead of all ~200 every capture."""
+        return self._pose_msgs(zip(stamps, poses))
 
     def _publish_fine(self) -> None:
         # the whole window (~2.5 MB at 300 x 300 x 7) is converted only when someone listens;

@@ -34,7 +34,6 @@ not have): counted, logged once with its reason, and the last good output stays 
 
 from __future__ import annotations
 
-import struct
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -51,7 +50,7 @@ from terrain_perception.features import CostConfig
 from terrain_perception.fill import (BoundsConfig, FillConfig, FillerConfig, RayConfig,
                                      TerrainFiller)
 from terrain_perception.grid import ELEVATION, GridMap
-from terrain_ros.conversions import grid_to_msg, msg_to_grid, msg_to_stance, pose_to_matrix
+from terrain_ros.conversions import grid_to_msg, msg_to_grid, msg_to_stance, pose_matrices_once
 from terrain_ros.node import Counters, run_node
 from terrain_ros.params import declare_config
 from terrain_ros.qos import LATCHED_QOS
@@ -120,7 +119,7 @@ class TerrainFillNode(Node):
         self._poses_msg: Optional[PoseArray] = None
         self._cams: np.ndarray = np.zeros((0, 4, 4))   # capture poses T_map_camera
         self._cams_frame: Optional[str] = None
-        self._pose_cache: dict = {}          # a capture pose's 7 doubles -> its 4x4
+        self._pose_cache = pose_matrices_once()   # capture pose -> its 4x4, once
         self._dirty = False
         self._stance: Optional[tuple] = None           # (feet (4, 3), frame)
         self.last_output: Optional[GridMap] = None
@@ -237,21 +236,10 @@ class TerrainFillNode(Node):
         return True
 
     def _pose_matrices(self, poses) -> np.ndarray:
-        """(K, 4, 4) matrices of the capture poses. The mapper republishes every kept pose
-        with each capture and a kept pose never changes, so each is converted once instead
-        of all ~130 every capture (~6 ms); keyed by the bytes of its 7 doubles (-0.0 is not
-        0.0), a bad pose is never kept. ValueError on a bad pose, as pose_to_matrix."""
-        cache, keep, out = self._pose_cache, {}, []
-        for p in poses:
-            a, q = p.position, p.orientation
-            key = struct.pack('7d', a.x, a.y, a.z, q.x, q.y, q.z, q.w)
-            T = cache.get(key)
-            if T is None:
-                T = pose_to_matrix(p)
-            keep[key] = T
-            out.append(T)
-        self._pose_cache = keep                        # only the poses still published
-        return np.array(out).reshape(-1, 4, 4)
+        """(K, 4, 4) matrices of the capture poses, each converted once (the mapper
+        republishes every kept pose with each capture: ~130, ~6 ms); ValueError on a bad pose,
+        as pose_to_matrix."""
+        return np.array(self._pose_cache(poses)).reshape(-1, 4, 4)
 
     # ------------------------------------------------------------------ work
     def _process(self) -> None:

@@ -310,6 +310,38 @@ def msg_to_stance(msg: Stance) -> Tuple[np.ndarray, Optional[int]]:
     return feet, None if msg.next_leg == Stance.LEG_NONE else int(msg.next_leg)
 
 
+class ConvertOnce:
+    """Converts each item of a republished list once: the mapper republishes every kept
+    capture pose with each capture (~100-200), and a kept pose never changes. ``key(item)``
+    identifies an item (exact bytes: -0.0 is not 0.0); the cache keeps only the items of the
+    latest call, and an item whose conversion raises is never kept (the error propagates)."""
+
+    def __init__(self, key, convert) -> None:
+        self._key, self._convert, self._cache = key, convert, {}
+
+    def __call__(self, items) -> list:
+        cache, keep, out = self._cache, {}, []
+        for item in items:
+            k = self._key(item)
+            v = cache.get(k)
+            if v is None:
+                v = self._convert(item)
+            keep[k] = v
+            out.append(v)
+        self._cache = keep
+        return out
+
+
+def _pose_bytes(p: Pose) -> bytes:
+    a, q = p.position, p.orientation
+    return struct.pack('7d', a.x, a.y, a.z, q.x, q.y, q.z, q.w)
+
+
+def pose_matrices_once() -> ConvertOnce:
+    """:class:`ConvertOnce` of geometry_msgs/Pose -> 4x4 (``pose_to_matrix``)."""
+    return ConvertOnce(_pose_bytes, pose_to_matrix)
+
+
 class JointStateError(ValueError):
     """A JointState that does not give the robot's joints; ``key`` names the problem for a
     node's counters."""
