@@ -265,7 +265,7 @@ class WalkingController:
         self._q_meas: Optional[np.ndarray] = None
         self._loaded: Optional[np.ndarray] = None   # (4,) bool, None without torques
         self._probe_legs: tuple = ()
-        self.touchdowns = {'early': 0, 'probed': 0, 'not_found': 0}
+        self.touchdowns = {'early': 0, 'probed': 0, 'not_found': 0, 'reanchored': 0}
         self._R_tilt: Optional[np.ndarray] = None   # measured base tilt (yaw removed)
         self._dry = False          # check_footsteps: segments without joint splines
         self.last_ik_reasons: tuple = ()
@@ -674,7 +674,31 @@ class WalkingController:
                 return seg
         return None
 
+    def _reanchor_feet(self) -> None:
+        """Believed feet out of reach from the believed body: put them where the commanded
+        joint angles hold them.
+
+        Every segment starts from the believed ``(_body, _feet)``; if that stance is itself out
+        of reach (a stance leg stretched to its full length ends a segment a fraction of a
+        millimetre past it), every new segment fails at its first knot and the robot refuses
+        every step from then on. The angles last commanded are a valid joint configuration, so
+        their FK is a reachable stance within that fraction of a millimetre of the belief."""
+        if self._feet is None or self._body is None or self._q_last is None:
+            return
+        if self._ik(gaitlib.pose_to_T(self._body), self._feet) is not None:
+            return
+        q = np.asarray(self._q_last, dtype=float).reshape(4, 3)
+        if not np.all(np.isfinite(q)):
+            return
+        feet = transform_points(gaitlib.pose_to_T(self._body), kinematics.forward(self.model, q))
+        feet[:, 2] -= self.model.foot_radius_m
+        if np.abs(feet - self._feet).max() > 0.01:
+            return   # not a hair past the reach: the belief is wrong in a way FK cannot mend
+        self._feet = feet
+        self.touchdowns['reanchored'] += 1
+
     def _next_segment(self, t0: float) -> Optional[_Segment]:
+        self._reanchor_feet()
         if self._probe_legs:
             legs, self._probe_legs = self._probe_legs, ()
             seg = self._make_probe(legs, t0)

@@ -443,3 +443,46 @@ def test_body_shifts_keep_the_zmp_within_the_bound():
     assert fast > 0.012
     assert slow <= 0.005 * 1.03
     assert t_slow > t_fast
+
+
+def test_a_stance_a_hair_past_full_stretch_is_reanchored_not_refused_forever():
+    # Closed-loop run L: the believed RH foot ended a segment 0.2 mm past the fully stretched
+    # leg; every later segment failed at its first knot ("pose 0 leg RH: target beyond the leg
+    # length") and the robot refused the same step 200+ times. The last commanded angles are a
+    # valid configuration: the controller re-anchors the belief on them and walks on.
+    m = load_robot_model('littledog')
+    ctl = WalkingController(m, WalkingConfig(plan_timeout_s=1e3, touchdown_depth_m=0.0))
+    ctl.reset(0.0, None, make_T(np.eye(3), [0.0, 0.0, m.standing_height_m]))
+    T = G.pose_to_T(ctl._body)
+    rh = 3
+
+    def reach(dz):
+        feet = ctl._feet.copy()
+        feet[rh, 2] -= dz
+        return ctl._ik(T, feet), feet
+
+    lo, hi = 0.0, 0.2                  # RH lowered into a hole until the leg is straight
+    for _ in range(50):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if reach(mid)[0] is not None else (lo, mid)
+    q_ok, _ = reach(lo - 1e-5)
+    _, past = reach(hi + 3e-4)
+    assert q_ok is not None and reach(hi + 3e-4)[0] is None
+    ctl._feet, ctl._q_last = past, q_ok.reshape(12)
+    ctl._phi_ref = np.stack([q_ok.reshape(4, 3)[:, 1] + q_ok.reshape(4, 3)[:, 2],
+                             q_ok.reshape(4, 3)[:, 0]], axis=-1)
+    target = np.array([past[rh, 0] + 0.02, past[rh, 1] + 0.02, 0.0])   # out of the hole
+    ctl.set_footsteps([rh], target[None], 'walk', 0.0)
+    errors = []
+    t, q = 0.0, None
+    while t < 6.0 and ctl.steps_done == 0:
+        cmd = ctl.update(t, q)
+        q = cmd.positions
+        if ctl.last_error:
+            errors.append(ctl.last_error)
+        t += DT
+    assert not errors, errors[:1]
+    assert ctl.steps_done == 1
+    assert ctl.touchdowns['reanchored'] >= 1
+    assert np.linalg.norm(_feet_from_command(ctl, ctl.update(t, q))[rh] - target) < 2e-3
+
