@@ -80,6 +80,13 @@ class PlannerConfig:
     distance_weight_gain: float = param(
         1.0, "gain on the quadratic term of Shao's omega = gain (x - centre)^2 + A "
         '(paper: 1)', 0.0, 1e4)
+    stride_centre: str = param(
+        'capped', "where a leg's search area is centred along the walking direction (the "
+        "foothold omega and the nominal-distance cost prefer): 'rule', the centre of Shao's "
+        'area [foot + min_step, nominal + wL + 2A] (the paper\'s stride rule (2A + wL - kL) / 2) '
+        "clipped to the max step length; 'capped', the centre of that area after the max-step "
+        'cap (about half the max step on flat ground: a shorter, slower stride)',
+        choices=('capped', 'rule'))
     min_step_m: float = param(0.01, 'shortest step along the walking direction [m]: a plan of '
                               'steps in place is no plan', 0.0, 1.0)
     lateral_search_m: float = param(0.03, 'half-width of each search area across the walking '
@@ -503,9 +510,12 @@ class FootstepPlanner:
         Returns (u, v, centre_u)."""
         res = self.grid.resolution_m
         lo = foot_u + self.cfg.min_step_m
-        hi = min(nom_u + wL + 2.0 * A, foot_u + self.robot.max_step_length_m)
+        rule_hi = nom_u + wL + 2.0 * A
+        hi = min(rule_hi, foot_u + self.robot.max_step_length_m)
         hi = max(hi, lo)
         centre = 0.5 * (lo + hi)
+        if self.cfg.stride_centre == 'rule':
+            centre = min(0.5 * (lo + max(rule_hi, lo)), hi)
         us = np.arange(lo, hi + 0.5 * res, res) if hi > lo else np.array([lo])
         w = self.cfg.lateral_search_m if lateral_m is None else lateral_m
         vs = nom_v + np.arange(-w, w + 0.5 * res, res) if w > 0 else np.array([nom_v])

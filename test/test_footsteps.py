@@ -131,10 +131,11 @@ def test_obstacle_selects_walk_in_crawl_order_and_avoids_edges():
     _check_plan_feasible(plan, cfg)
 
 
-def test_flat_but_feet_out_of_position_walks_with_the_stride_rule():
+@pytest.mark.parametrize('centre', ['capped', 'rule'])
+def test_flat_but_feet_out_of_position_walks_with_the_stride_rule(centre):
     # the paper's stride rule alone: our spread limit (tested below) would cap the leading
     # LF's next stride while the other feet lag
-    cfg = fs.PlannerConfig(max_leg_spread_m=0.0)
+    cfg = fs.PlannerConfig(max_leg_spread_m=0.0, stride_centre=centre)
     g = _flat()
     planner = fs.FootstepPlanner(ROBOT, cfg)
     assert planner.set_map(g) is None
@@ -146,13 +147,21 @@ def test_flat_but_feet_out_of_position_walks_with_the_stride_rule():
     assert plan.ok and plan.gait == fs.GAIT_WALK, plan.status_text
     assert 'out of position' in plan.status_text
     # Uniform cost: omega puts each foothold at the centre of its search area
-    # [kL, wL + 2A] (capped by the max step): the paper's stride (2A + wL - kL) / 2.
+    # [kL, wL + 2A]: the paper's stride (2A + wL - kL) / 2. 'capped' centres the area after
+    # the max-step cap, 'rule' takes the paper's centre and clips it to the max step.
+    long_steps = 0
     for s in plan.footsteps:
         u0 = feet[s.leg, 0]
-        hi = min(ROBOT.nominal_feet[s.leg][0] + 2 * A, u0 + ROBOT.max_step_length_m)
+        rule_hi = ROBOT.nominal_feet[s.leg][0] + 2 * A
+        hi = min(rule_hi, u0 + ROBOT.max_step_length_m)
         lo = u0 + cfg.min_step_m
-        assert s.position[0] == pytest.approx(0.5 * (lo + max(hi, lo)), abs=RES)
+        want = 0.5 * (lo + max(hi, lo)) if centre == 'capped' else \
+            min(0.5 * (lo + max(rule_hi, lo)), max(hi, lo))
+        long_steps += want > 0.5 * (lo + max(hi, lo)) + RES
+        assert s.position[0] == pytest.approx(want, abs=RES)
         assert s.position[1] == pytest.approx(feet[s.leg, 1], abs=RES)
+    # the two centres differ here: the rule's strides are longer where the cap binds
+    assert (long_steps > 0) == (centre == 'rule')
     _check_plan_feasible(plan, cfg)
 
 
