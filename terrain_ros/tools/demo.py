@@ -5,8 +5,8 @@ terrain fill, footstep planner, walking controller: one process each, all on the
 ``/clock``), records every topic to an mcap bag, watches the run and writes the report::
 
     terrain-demo [--robot littledog] [--course rocks-6cm] [--seed 0] [--run-dir DIR]
-                 [--max-sim-time 150] [--timeout 840] [--image-scale 1.0] [--no-bag]
-                 [--real-time-factor 0.15] [--stall-time 60] [--blind] [--replay BAG]
+                 [--max-sim-time 240] [--timeout 840] [--image-scale 1.0] [--no-bag]
+                 [--real-time-factor 0.2] [--stall-time 60] [--blind] [--replay BAG]
 
 Run directory (default ``runs/<date>-<robot>-<course>-s<seed>``)::
 
@@ -75,15 +75,16 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument('--seed', type=int, default=0, help='course seed (default 0)')
     p.add_argument('--run-dir', type=Path, default=None,
                    help='output directory (default runs/<date>-<robot>-<course>-s<seed>)')
-    p.add_argument('--max-sim-time', type=float, default=150.0,
-                   help='stop after this much simulated time [s] (default 150)')
+    p.add_argument('--max-sim-time', type=float, default=240.0,
+                   help='stop after this much simulated time [s] (default 240; at the default '
+                        'real-time factor the wall-time limit comes first)')
     p.add_argument('--timeout', type=float, default=840.0,
                    help='stop after this much wall time, start-up included [s] (default 840)')
     p.add_argument('--image-scale', type=float, default=1.0,
                    help='camera resolution relative to the robot profile (default 1)')
-    p.add_argument('--real-time-factor', type=float, default=0.15,
+    p.add_argument('--real-time-factor', type=float, default=0.2,
                    help='cap on simulated seconds per wall second, so the nodes keep up with '
-                        'the simulated clock (default 0.15; 0 = as fast as possible)')
+                        'the simulated clock (default 0.2; 0 = as fast as possible)')
     p.add_argument('--stall-time', type=float, default=60.0,
                    help='end the run when the robot has not advanced 1 cm in this much '
                         'simulated time [s] (default 60)')
