@@ -256,6 +256,7 @@ class WalkingController:
         self._pending_swing: Optional[_Step] = None
         self._last_legs: tuple = ()          # legs of the latest swing started
         self._recentred_at = -1    # steps_done at the last recentring
+        self._phi_ref = None       # (4, 2) shank pitch and roll angles when the contact was set
         self.steps_done = 0
         self.last_margin_m = np.nan
         self.foot_loads = np.full(4, np.nan)   # estimated vertical foot forces [N]
@@ -288,6 +289,7 @@ class WalkingController:
         feet = transform_points(T_level, kinematics.forward(m, q))
         feet[:, 2] -= m.foot_radius_m
         self._feet = feet
+        self._phi_ref = _shank_angles(q)
         self._body = np.array([T[0, 3], T[1, 3], T[2, 3], yaw, 0.0, 0.0])
         self._seg = None
         self._pending_swing = None
@@ -551,6 +553,7 @@ class WalkingController:
         self._feet = seg.feet_end.copy()
         self._body = seg.body_end.copy()
         self._q_last = seg.q_end.copy() if seg.spline is None else seg.spline(seg.duration)
+        self._phi_ref = _shank_angles(self._q_last.reshape(4, 3))
         if seg.kind == 'swing':
             self.steps_done += len(seg.legs)
         elif seg.kind == 'probe':
@@ -618,6 +621,7 @@ class WalkingController:
         self._feet = seg.feet_at(tau)
         self._body = np.asarray(seg.body_fn(tau), dtype=float).copy()
         self._q_last = seg.joints(tau)[0]
+        self._phi_ref = _shank_angles(self._q_last.reshape(4, 3))
         if seg.kind == 'swing':
             self.steps_done += len(seg.legs)
         elif seg.kind == 'probe':
@@ -1031,7 +1035,6 @@ class WalkingController:
         centres[..., 2] += self.model.foot_radius_m
         rolling = np.ones(4, dtype=bool) if rolling is None else rolling
         roll = np.zeros_like(centres)
-        ref = None
         for _ in range(4):
             local = np.einsum('nji,nkj->nki', T[:, :3, :3], centres + roll
                               - bodies[:, None, :3])
@@ -1039,14 +1042,7 @@ class WalkingController:
             if not res.all_ok:
                 self.last_ik_reasons = res.reasons
                 return None
-            if ref is None:
-                # Rolling since the segment's first knot: its feet are where they are. (A
-                # reference kept from the end of the previous segment drifted 0.007 rad from
-                # the angles the stance was re-solved at, which moved a fully stretched leg's
-                # first-knot target out of reach: 'pose 0 ... beyond the leg length', refused
-                # at every replan, a ground-truth rocks walk, seed 7.)
-                ref = _shank_angles(res.q[0])
-            roll = self._rolling(res.q, c, s, ref) * rolling[:, None]
+            roll = self._rolling(res.q, c, s) * rolling[:, None]
         q = res.q.reshape(len(taus), 12)
         # A dry run (check_footsteps) needs the checks and the end state, not the motion.
         spline = None if self._dry else CubicSpline(taus, q, axis=0, bc_type='clamped')
@@ -1056,11 +1052,9 @@ class WalkingController:
         seg.roll_end = roll[-1]
         return seg
 
-    def _rolling(self, q: np.ndarray, cos_yaw: np.ndarray, sin_yaw: np.ndarray,
-                 ref: np.ndarray) -> np.ndarray:
-        """``(n, 4, 3)`` odom displacement of rolling spherical feet since the shank angles
-        ``ref`` ``(4, 2)``."""
-        d = (_shank_angles(q) - ref) * self.model.foot_radius_m
+    def _rolling(self, q: np.ndarray, cos_yaw: np.ndarray, sin_yaw: np.ndarray) -> np.ndarray:
+        """``(n, 4, 3)`` odom displacement of rolling spherical feet since ``_phi_ref``."""
+        d = (_shank_angles(q) - self._phi_ref) * self.model.foot_radius_m
         dx, dy = d[..., 0], -d[..., 1]
         c, s = cos_yaw[:, None], sin_yaw[:, None]
         return np.stack([c * dx - s * dy, s * dx + c * dy, np.zeros_like(dx)], axis=-1)
@@ -1097,6 +1091,7 @@ def check_footsteps(model: RobotModel, config: WalkingConfig, feet: np.ndarray,
     if q is None:
         return 0, 'the stance itself is out of reach'
     ctl._feet, ctl._body, ctl._q_last = feet.copy(), body, q.reshape(12)
+    ctl._phi_ref = _shank_angles(q.reshape(4, 3))
     try:
         ctl.set_footsteps(legs, positions, gait, 0.0)
     except ValueError as exc:
