@@ -675,17 +675,31 @@ class WalkingController:
         return None
 
     def _reanchor_feet(self) -> None:
-        """Believed feet out of reach from the believed body: put them where the commanded
-        joint angles hold them.
+        """Make the believed stance a valid start for the next segment.
 
-        Every segment starts from the believed ``(_body, _feet)``; if that stance is itself out
-        of reach (a stance leg stretched to its full length ends a segment a fraction of a
-        millimetre past it), every new segment fails at its first knot and the robot refuses
-        every step from then on. The angles last commanded are a valid joint configuration, so
-        their FK is a reachable stance within that fraction of a millimetre of the belief."""
+        Every segment starts from the believed ``(_body, _feet)``, its stance feet rolled from
+        ``_phi_ref``. If that first knot is out of reach, every new segment fails there
+        ('pose 0') and the robot refuses every step from then on. Two ways it happened: the
+        stance itself a fraction of a millimetre past a fully stretched leg (closed-loop run
+        L): the feet are put where the last commanded angles (a valid configuration) hold
+        them; or the stance in reach but ``_phi_ref`` stale (a ground-truth walk): the roll is
+        restarted from the angles the stance is solved at."""
         if self._feet is None or self._body is None or self._q_last is None:
             return
-        if self._ik(gaitlib.pose_to_T(self._body), self._feet) is not None:
+        T = gaitlib.pose_to_T(self._body)
+        q0 = self._ik(T, self._feet)
+        if q0 is not None:
+            # In reach; but a segment's knots roll the feet from the shank angles _phi_ref,
+            # kept since the previous segment ended. When the stance was re-solved at other
+            # angles (0.007 rad off in a rocks walk, seed 7), the first knot's target moves by
+            # that roll (67 um there), past the reach of a fully stretched leg: every segment
+            # then fails at 'pose 0'. Roll from the angles the stance is solved at instead.
+            if self._phi_ref is not None:
+                yaw = np.array([self._body[3]])
+                roll = self._rolling(q0.reshape(1, 4, 3), np.cos(yaw), np.sin(yaw))[0]
+                if self._ik(T, self._feet + roll) is None:
+                    self._phi_ref = _shank_angles(q0.reshape(4, 3))
+                    self.touchdowns['reanchored'] += 1
             return
         q = np.asarray(self._q_last, dtype=float).reshape(4, 3)
         if not np.all(np.isfinite(q)):

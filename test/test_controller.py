@@ -486,3 +486,45 @@ def test_a_stance_a_hair_past_full_stretch_is_reanchored_not_refused_forever():
     assert ctl.touchdowns['reanchored'] >= 1
     assert np.linalg.norm(_feet_from_command(ctl, ctl.update(t, q))[rh] - target) < 2e-3
 
+
+
+def test_a_stale_rolling_reference_does_not_push_a_stretched_leg_out_of_reach():
+    # A ground-truth rocks walk (seed 7) ended refusing the same step at every replan: 'pose 0
+    # leg LH: target beyond the leg length' with the stance itself in reach. The feet roll from
+    # the shank angles kept since the previous segment; 0.007 rad off the angles the stance
+    # was re-solved at, that roll moved the stretched leg's first target out of reach.
+    m = load_robot_model('littledog')
+    ctl = WalkingController(m, WalkingConfig(plan_timeout_s=1e3, touchdown_depth_m=0.0))
+    ctl.reset(0.0, None, make_T(np.eye(3), [0.0, 0.0, m.standing_height_m]))
+    T = G.pose_to_T(ctl._body)
+    rh = 3
+    base = ctl._feet.copy()
+    base[rh, 1] -= 0.05                 # out to the side: the leg slants, rolling changes reach
+
+    def reach(dz):
+        feet = base.copy()
+        feet[rh, 2] -= dz
+        return ctl._ik(T, feet), feet
+
+    lo, hi = 0.0, 0.2
+    for _ in range(50):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if reach(mid)[0] is not None else (lo, mid)
+    q, feet = reach(lo - 2e-6)
+    assert q is not None
+    ctl._feet, ctl._q_last = feet, q.reshape(12)
+    stale = np.stack([q[:, 1] + q[:, 2], q[:, 0]], axis=-1)
+    stale[rh, 1] -= 0.02                # the foot rolls 0.2 mm outwards from here
+    ctl._phi_ref = stale
+    roll = ctl._rolling(q[None], np.ones(1), np.zeros(1))[0]
+    assert ctl._ik(T, feet + roll) is None          # the first knot would be out of reach
+    target = np.array([feet[rh, 0] + 0.02, feet[rh, 1] + 0.03, 0.0])
+    ctl.set_footsteps([rh], target[None], 'walk', 0.0)
+    errors, t, qc = [], 0.0, None
+    while t < 6.0 and ctl.steps_done == 0:
+        qc = ctl.update(t, qc).positions
+        if ctl.last_error:
+            errors.append(ctl.last_error)
+        t += DT
+    assert not errors, errors[:1]
+    assert ctl.steps_done == 1 and ctl.touchdowns['reanchored'] >= 1
