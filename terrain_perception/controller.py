@@ -695,11 +695,16 @@ class WalkingController:
             # that roll (67 um there), past the reach of a fully stretched leg: every segment
             # then fails at 'pose 0'. Roll from the angles the stance is solved at instead.
             if self._phi_ref is not None:
+                # the fixed-point iteration of _build at its first knot
                 yaw = np.array([self._body[3]])
-                roll = self._rolling(q0.reshape(1, 4, 3), np.cos(yaw), np.sin(yaw))[0]
-                if self._ik(T, self._feet + roll) is None:
-                    self._phi_ref = _shank_angles(q0.reshape(4, 3))
-                    self.touchdowns['reanchored'] += 1
+                q = q0
+                for _ in range(3):
+                    roll = self._rolling(q.reshape(1, 4, 3), np.cos(yaw), np.sin(yaw))[0]
+                    q = self._ik(T, self._feet + roll)
+                    if q is None:
+                        self._phi_ref = _shank_angles(q0.reshape(4, 3))
+                        self.touchdowns['reanchored'] += 1
+                        break
             return
         q = np.asarray(self._q_last, dtype=float).reshape(4, 3)
         if not np.all(np.isfinite(q)):
