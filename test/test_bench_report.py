@@ -30,3 +30,17 @@ def test_partial_run_replaces_its_sections_and_keeps_the_others(tmp_path, capsys
     # without --keep only the folder's suites are written
     _report.main(str(runs))
     assert list(_report.sections(capsys.readouterr().out)) == ['plan']
+
+
+def test_sim_rocks_variant_is_parsed_and_bad_ones_refused_by_name(capsys):
+    from terrain_perception.bench import runner
+    from terrain_perception.bench.sim import parse_rocks_variant
+    assert parse_rocks_variant('') is None
+    v = parse_rocks_variant('{"planner": {"stride_centre": "rule"}}')
+    assert v == {'planner': {'stride_centre': 'rule'}, 'controller': {}}
+    for text, words in (('{"planner": ', 'not JSON'),
+                        ('{"walker": {}}', 'must be an object'),
+                        ('{"controller": {"no_such_gain": 1}}', 'no_such_gain')):
+        rc = runner.main(['sim', '--rocks-only', '--rocks-seeds', '1', '--rocks-variant', text])
+        assert rc == 2
+        assert words in capsys.readouterr().err

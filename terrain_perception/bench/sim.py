@@ -20,6 +20,7 @@ rocks6_advanced_m, rocks6_open_loop_advanced_m, plus per-case details.
 from __future__ import annotations
 
 import argparse
+import json
 import time
 from typing import Optional
 
@@ -41,6 +42,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help='first seed of --rocks-seeds (seeds S..S+N-1): seeds 0-7 are the '
                         'ones the planner and controller defaults were chosen on, so 8 and up '
                         'are held out')
+    parser.add_argument('--rocks-variant', type=str, default='', metavar='JSON',
+                        help='also walk the rocks seeds with these overrides of the defaults, '
+                        'e.g. \'{"planner": {"stride_centre": "rule"}, "controller": '
+                        '{"shift_zmp_offset_m": 0.008}}\' (a third row, "variant")')
     parser.add_argument('--rocks-only', action='store_true',
                         help='only the rocks walks (no real-time factor and flat walks)')
 
@@ -177,11 +182,37 @@ def _rocks_walk(course, start_x: float, goal_x: float, seed: int, sensing: bool 
             'rtf_walk': res.sim_time_s / wall}
 
 
-def _rocks_seeds(n: int, start_x: float, goal_x: float, first: int = 0) -> dict:
+def parse_rocks_variant(text: str) -> Optional[dict]:
+    """``--rocks-variant``: ``{"planner": {...}, "controller": {...}}`` or None if empty;
+    ValueError naming the problem otherwise (unknown sections or parameters included)."""
+    if not text:
+        return None
+    try:
+        v = json.loads(text)
+    except json.JSONDecodeError as exc:
+        raise ValueError(f'--rocks-variant is not JSON: {exc}') from None
+    if not isinstance(v, dict) or not v or set(v) - {'planner', 'controller'} or \
+            not all(isinstance(x, dict) for x in v.values()):
+        raise ValueError('--rocks-variant must be an object with "planner" and/or '
+                         f'"controller" objects of parameters, got {text!r}')
+    from terrain_perception.controller import WalkingConfig
+    from terrain_perception.footsteps import PlannerConfig
+    for key, cls in (('planner', PlannerConfig), ('controller', WalkingConfig)):
+        unknown = set(v.get(key, {})) - set(cls.__dataclass_fields__)
+        if unknown:
+            raise ValueError(f'--rocks-variant: {cls.__name__} has no parameter(s) '
+                             f'{sorted(unknown)}')
+    return {'planner': dict(v.get('planner', {})), 'controller': dict(v.get('controller', {}))}
+
+
+def _rocks_seeds(n: int, start_x: float, goal_x: float, first: int = 0,
+                 variant: Optional[dict] = None) -> dict:
     """The ground-truth-footstep rocks walk on seeds first..first+n-1, defaults against the
-    baseline."""
+    baseline (and a variant of the defaults, if given)."""
     from terrain_perception.terrain import make_course
     rows = {'default': [], 'baseline': []}
+    if variant is not None:
+        rows['variant'] = []
     seeds = list(range(first, first + n))
     for seed in seeds:
         course = make_course('rocks-6cm', seed, 0.005)
@@ -189,10 +220,16 @@ def _rocks_seeds(n: int, start_x: float, goal_x: float, first: int = 0) -> dict:
         rows['baseline'].append(_rocks_walk(course, start_x, goal_x, seed,
                                             planner_kw=ROCKS_BASELINE[0],
                                             walking_kw=ROCKS_BASELINE[1]))
+        if variant is not None:
+            rows['variant'].append(_rocks_walk(course, start_x, goal_x, seed,
+                                               planner_kw=variant['planner'],
+                                               walking_kw=variant['controller']))
     print(f'\nrocks-6cm, ground-truth footsteps, x {start_x} -> {goal_x} m, seeds '
           f'{seeds[0]}-{seeds[-1]}{" (held out: defaults chosen on 0-7)" if first >= 8 else ""} '
           f'(F = fell, X = crossed); baseline: {ROCKS_BASELINE_NAME} '
-          f'(planner {ROCKS_BASELINE[0]}, controller {ROCKS_BASELINE[1]})')
+          f'(planner {ROCKS_BASELINE[0]}, controller {ROCKS_BASELINE[1]})'
+          + (f'; variant: the defaults with planner {variant["planner"]}, controller '
+             f'{variant["controller"]}' if variant is not None else ''))
     summary = {}
     for name, rs in rows.items():
         crossed = [r['reached'] and not r['fell'] for r in rs]
@@ -213,10 +250,12 @@ def run(args: argparse.Namespace) -> dict:
     quick = bool(getattr(args, 'quick', False))
     seed = int(getattr(args, 'seed', 0))
     n_rocks = int(getattr(args, 'rocks_seeds', 0) or 0)
+    variant = parse_rocks_variant(getattr(args, 'rocks_variant', '') or '')
     if getattr(args, 'rocks_only', False):
         if n_rocks <= 0:
             raise ValueError('--rocks-only needs --rocks-seeds N (N >= 1)')
-        return _rocks_seeds(n_rocks, 0.4, 2.4, int(getattr(args, 'rocks_first_seed', 0)))
+        return _rocks_seeds(n_rocks, 0.4, 2.4, int(getattr(args, 'rocks_first_seed', 0)),
+                            variant)
     course = make_course('rocks-6cm', seed, 0.005)
 
     rtf_rows = []
@@ -277,5 +316,6 @@ def run(args: argparse.Namespace) -> dict:
         'quick': quick,
     }
     if n_rocks > 0:
-        out.update(_rocks_seeds(n_rocks, 0.4, 2.4, int(getattr(args, 'rocks_first_seed', 0))))
+        out.update(_rocks_seeds(n_rocks, 0.4, 2.4, int(getattr(args, 'rocks_first_seed', 0)),
+                                variant))
     return out
