@@ -709,7 +709,7 @@ class WalkingController:
         q = np.asarray(self._q_last, dtype=float).reshape(4, 3)
         if not np.all(np.isfinite(q)):
             return
-        feet = transform_points(gaitlib.pose_to_T(self._body), kinematics.forward(self.model, q))
+        feet = transform_points(T, kinematics.forward(self.model, q))
         feet[:, 2] -= self.model.foot_radius_m
         if np.abs(feet - self._feet).max() > 0.01:
             return   # not a hair past the reach: the belief is wrong in a way FK cannot mend
