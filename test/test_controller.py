@@ -10,7 +10,8 @@ import pytest
 
 from terrain_perception import gait as G
 from terrain_perception import kinematics as K
-from terrain_perception.controller import WalkingConfig, WalkingController, check_footsteps
+from terrain_perception.controller import (WalkingConfig, WalkingController, _shank_angles,
+                                           check_footsteps)
 from terrain_perception.robot_model import load_robot_model
 from terrain_perception.transforms import make_T, rot_z
 
@@ -445,47 +446,60 @@ def test_body_shifts_keep_the_zmp_within_the_bound():
     assert t_slow > t_fast
 
 
+def _straight_rh(side_m=0.0):
+    """A standing LittleDog controller whose RH foot (moved ``side_m`` sideways) is lowered into
+    a hole until the leg is straight: ``(ctl, reach, lo, hi)`` with ``reach(dz) -> (IK angles
+    or None, feet)`` and the straight leg between the depths ``lo`` (in reach) and ``hi``."""
+    m = load_robot_model('littledog')
+    ctl = WalkingController(m, WalkingConfig(plan_timeout_s=1e3, touchdown_depth_m=0.0))
+    ctl.reset(0.0, None, make_T(np.eye(3), [0.0, 0.0, m.standing_height_m]))
+    T = G.pose_to_T(ctl._body)
+    base = ctl._feet.copy()
+    base[3, 1] += side_m
+
+    def reach(dz):
+        feet = base.copy()
+        feet[3, 2] -= dz
+        return ctl._ik(T, feet), feet
+
+    lo, hi = 0.0, 0.2
+    for _ in range(50):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if reach(mid)[0] is not None else (lo, mid)
+    return ctl, reach, lo, hi
+
+
+def _step_once(ctl, leg, target):
+    """Plan one step of ``leg`` to ``target`` and run with perfect tracking until it is done
+    (6 s at most): ``(errors seen, t, last command)``."""
+    ctl.set_footsteps([leg], target[None], 'walk', 0.0)
+    errors, t, q = [], 0.0, None
+    while t < 6.0 and ctl.steps_done == 0:
+        q = ctl.update(t, q).positions
+        if ctl.last_error:
+            errors.append(ctl.last_error)
+        t += DT
+    return errors, t, q
+
+
 def test_a_stance_a_hair_past_full_stretch_is_reanchored_not_refused_forever():
     # Closed-loop run L: the believed RH foot ended a segment 0.2 mm past the fully stretched
     # leg; every later segment failed at its first knot ("pose 0 leg RH: target beyond the leg
     # length") and the robot refused the same step 200+ times. The last commanded angles are a
     # valid configuration: the controller re-anchors the belief on them and walks on.
-    m = load_robot_model('littledog')
-    ctl = WalkingController(m, WalkingConfig(plan_timeout_s=1e3, touchdown_depth_m=0.0))
-    ctl.reset(0.0, None, make_T(np.eye(3), [0.0, 0.0, m.standing_height_m]))
-    T = G.pose_to_T(ctl._body)
     rh = 3
-
-    def reach(dz):
-        feet = ctl._feet.copy()
-        feet[rh, 2] -= dz
-        return ctl._ik(T, feet), feet
-
-    lo, hi = 0.0, 0.2                  # RH lowered into a hole until the leg is straight
-    for _ in range(50):
-        mid = 0.5 * (lo + hi)
-        lo, hi = (mid, hi) if reach(mid)[0] is not None else (lo, mid)
+    ctl, reach, lo, hi = _straight_rh()
     q_ok, _ = reach(lo - 1e-5)
     _, past = reach(hi + 3e-4)
     assert q_ok is not None and reach(hi + 3e-4)[0] is None
     ctl._feet, ctl._q_last = past, q_ok.reshape(12)
-    ctl._phi_ref = np.stack([q_ok.reshape(4, 3)[:, 1] + q_ok.reshape(4, 3)[:, 2],
-                             q_ok.reshape(4, 3)[:, 0]], axis=-1)
+    ctl._phi_ref = _shank_angles(q_ok.reshape(4, 3))
     target = np.array([past[rh, 0] + 0.02, past[rh, 1] + 0.02, 0.0])   # out of the hole
-    ctl.set_footsteps([rh], target[None], 'walk', 0.0)
-    errors = []
-    t, q = 0.0, None
-    while t < 6.0 and ctl.steps_done == 0:
-        cmd = ctl.update(t, q)
-        q = cmd.positions
-        if ctl.last_error:
-            errors.append(ctl.last_error)
-        t += DT
+    errors, t, q = _step_once(ctl, rh, target)
     assert not errors, errors[:1]
     assert ctl.steps_done == 1
     assert ctl.touchdowns['reanchored'] >= 1
     assert np.linalg.norm(_feet_from_command(ctl, ctl.update(t, q))[rh] - target) < 2e-3
-
 
 
 def test_a_stale_rolling_reference_does_not_push_a_stretched_leg_out_of_reach():
@@ -493,38 +507,19 @@ def test_a_stale_rolling_reference_does_not_push_a_stretched_leg_out_of_reach():
     # leg LH: target beyond the leg length' with the stance itself in reach. The feet roll from
     # the shank angles kept since the previous segment; 0.007 rad off the angles the stance
     # was re-solved at, that roll moved the stretched leg's first target out of reach.
-    m = load_robot_model('littledog')
-    ctl = WalkingController(m, WalkingConfig(plan_timeout_s=1e3, touchdown_depth_m=0.0))
-    ctl.reset(0.0, None, make_T(np.eye(3), [0.0, 0.0, m.standing_height_m]))
-    T = G.pose_to_T(ctl._body)
     rh = 3
-    base = ctl._feet.copy()
-    base[rh, 1] -= 0.05                 # out to the side: the leg slants, rolling changes reach
-
-    def reach(dz):
-        feet = base.copy()
-        feet[rh, 2] -= dz
-        return ctl._ik(T, feet), feet
-
-    lo, hi = 0.0, 0.2
-    for _ in range(50):
-        mid = 0.5 * (lo + hi)
-        lo, hi = (mid, hi) if reach(mid)[0] is not None else (lo, mid)
+    # out to the side: the leg slants, rolling changes reach
+    ctl, reach, lo, _ = _straight_rh(side_m=-0.05)
+    T = G.pose_to_T(ctl._body)
     q, feet = reach(lo - 2e-6)
     assert q is not None
     ctl._feet, ctl._q_last = feet, q.reshape(12)
-    stale = np.stack([q[:, 1] + q[:, 2], q[:, 0]], axis=-1)
+    stale = _shank_angles(q)
     stale[rh, 1] -= 0.02                # the foot rolls 0.2 mm outwards from here
     ctl._phi_ref = stale
     roll = ctl._rolling(q[None], np.ones(1), np.zeros(1))[0]
     assert ctl._ik(T, feet + roll) is None          # the first knot would be out of reach
     target = np.array([feet[rh, 0] + 0.02, feet[rh, 1] + 0.03, 0.0])
-    ctl.set_footsteps([rh], target[None], 'walk', 0.0)
-    errors, t, qc = [], 0.0, None
-    while t < 6.0 and ctl.steps_done == 0:
-        qc = ctl.update(t, qc).positions
-        if ctl.last_error:
-            errors.append(ctl.last_error)
-        t += DT
+    errors, _, _ = _step_once(ctl, rh, target)
     assert not errors, errors[:1]
     assert ctl.steps_done == 1 and ctl.touchdowns['reanchored'] >= 1
