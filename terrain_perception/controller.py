@@ -266,6 +266,7 @@ class WalkingController:
         self._loaded: Optional[np.ndarray] = None   # (4,) bool, None without torques
         self._probe_legs: tuple = ()
         self.touchdowns = {'early': 0, 'probed': 0, 'not_found': 0, 'reanchored': 0}
+        self._reanchor_checked = None   # stance last checked by _reanchor_feet
         self._R_tilt: Optional[np.ndarray] = None   # measured base tilt (yaw removed)
         self._dry = False          # check_footsteps: segments without joint splines
         self.last_ik_reasons: tuple = ()
@@ -686,6 +687,13 @@ class WalkingController:
         restarted from the angles the stance is solved at."""
         if self._feet is None or self._body is None or self._q_last is None:
             return
+        # Standing asks for a next segment at every tick; the check (four IK calls, ~0.4 ms,
+        # most of a standing tick) is only needed when the stance it checks has changed.
+        key = (self._body.tobytes(), self._feet.tobytes(), np.asarray(self._q_last).tobytes(),
+               None if self._phi_ref is None else self._phi_ref.tobytes())
+        if key == self._reanchor_checked:
+            return
+        self._reanchor_checked = key
         T = gaitlib.pose_to_T(self._body)
         q0 = self._ik(T, self._feet)
         if q0 is not None:
