@@ -462,6 +462,7 @@ class FootstepPlanner:
         self.cost: Optional[np.ndarray] = None
         self.allowed: Optional[np.ndarray] = None
         self._rng = np.random.default_rng(config.random_seed)
+        self._refusal_check = None      # set by plan_checked while it runs the recovery
 
     @property
     def A(self) -> float:
@@ -632,7 +633,13 @@ class FootstepPlanner:
             self.patches = (pv, pr) if len(pv) else None
         else:
             self.patches = None
-        plan = self._plan_heading(feet, body_xy, yaw, remaining, first_leg)
+        refused = self._refusal_check
+        if refused is not None:
+            # plan_checked: the executor refused every normal plan; straight to the recovery.
+            plan = failed(STATUS_NO_FOOTHOLD, 'every first step refused by the executor')
+            yaw = yaw_now
+        else:
+            plan = self._plan_heading(feet, body_xy, yaw, remaining, first_leg)
         if not plan.ok and yaw != yaw_now:
             # Turning made the stance infeasible: keep the current heading this time.
             keep = self._plan_heading(feet, body_xy, yaw_now, remaining, first_leg)
@@ -640,7 +647,7 @@ class FootstepPlanner:
                 keep.status_text += ' (turn towards the goal postponed)'
                 plan, yaw = keep, yaw_now
         if plan.status == STATUS_NO_FOOTHOLD and self.cfg.recovery:
-            plan = self._recover(plan, feet, body_xy, yaw_now, remaining, first_leg)
+            plan = self._recover(plan, feet, body_xy, yaw_now, remaining, first_leg, refused)
             yaw = yaw_now if plan.ok else yaw
         plan.initial_feet = feet.copy()
         plan.yaw = yaw
@@ -655,7 +662,8 @@ class FootstepPlanner:
         (steps accepted, why not)``, the executor's own stability and reach model (the walking
         controller's ``check_footsteps``: it balances the whole-robot COM with the legs, this
         planner a point COG). Only the accepted prefix is kept; if the first step is refused,
-        each other leg is tried first in turn. The status names what was cut and why."""
+        each other leg is tried first in turn, then (``recovery``) the relaxed plans of
+        :meth:`_recover` whose first step is accepted. The status names what was cut and why."""
         plan = self.plan(T_map_base, goal_xy, feet=feet, patches=patches, first_leg=first_leg)
         if not plan.ok or plan.gait != GAIT_WALK or not plan.footsteps:
             return plan
@@ -666,37 +674,68 @@ class FootstepPlanner:
                                                     patches=patches, first_leg=leg)
             if not p.ok or not p.footsteps:
                 continue
-            legs = np.array([f.leg for f in p.footsteps])
-            n, why = check(legs, np.array([f.position for f in p.footsteps]))
+            n, why = self._checked_prefix(p, check)
             if n <= 0:
                 refusal = refusal or why
                 continue
-            if n < len(p.footsteps):
-                p.check_note = (f'kept {n} of {len(p.footsteps)} steps: the controller '
-                                f'would refuse the next: {why}')
-                p.status_text += f' ({p.check_note})'
-                p.footsteps = p.footsteps[:n]
             if leg != first:
                 note = (f'{LEG_NAMES[leg]} first: the controller would refuse '
                         f'{LEG_NAMES[first]} first ({refusal})')
                 p.check_note = note + ('; ' + p.check_note if p.check_note else '')
                 p.status_text = note + '; ' + p.status_text
             return p
-        return failed(STATUS_NO_FOOTHOLD, 'the controller would refuse the first step of every '
-                      f'plan from this stance ({refusal})')
+        why = ('the controller would refuse the first step of every plan from this stance '
+               f'({refusal})')
+        if self.cfg.recovery:
+            # The relaxed plans of the recovery, each kept only if its first step is accepted.
+            self._refusal_check = check
+            try:
+                p = self.plan(T_map_base, goal_xy, feet=feet, patches=patches, first_leg=first)
+            finally:
+                self._refusal_check = None
+            if p.ok:
+                p.check_note = why + ('; ' + p.check_note if p.check_note else '')
+                p.status_text = f'{why}; {p.status_text}'
+                return p
+        return failed(STATUS_NO_FOOTHOLD, why)
 
-    def _recover(self, failed_plan, feet, body_xy, yaw, remaining, first_leg) -> FootstepPlan:
+    @staticmethod
+    def _checked_prefix(plan: FootstepPlan, check) -> Tuple[int, str]:
+        """Dry-run ``plan``'s steps through ``check``; cut it to the accepted prefix (noted in
+        its status) if that is not empty. Returns ``check``'s ``(steps accepted, why not)``."""
+        n, why = check(np.array([f.leg for f in plan.footsteps]),
+                       np.array([f.position for f in plan.footsteps]))
+        if 0 < n < len(plan.footsteps):
+            plan.check_note = (f'kept {n} of {len(plan.footsteps)} steps: the controller '
+                               f'would refuse the next: {why}')
+            plan.status_text += f' ({plan.check_note})'
+            plan.footsteps = plan.footsteps[:n]
+        return n, why
+
+    def _recover(self, failed_plan, feet, body_xy, yaw, remaining, first_leg,
+                 check=None) -> FootstepPlan:
         """A stance with no feasible continuation (a re-estimated map can remove the footholds
         the previous plan counted on, a band of unsafe cells can cross a leg's path): retry
         with, in turn, a three times wider search across the walking line for the same leg,
         the other legs first, short or backward re-placing steps allowed, half the stability
         margin plus a deeper crouch, and the wider search with the other legs first. The first
         that plans is returned with the relaxation named in its status. The wider search comes
-        first: letting the other legs go on while one is stuck leaves it ever further behind."""
+        first: letting the other legs go on while one is stuck leaves it ever further behind;
+        next comes the foot furthest behind its nominal place, which holds the others back (the
+        spread limit), so that stepping the others backward is the later resort. With ``check``
+        (see :meth:`plan_checked`) a relaxed plan counts only if the executor accepts its first
+        step, and is cut to the accepted prefix."""
         base = self.cfg
         wide = {'lateral_search_m': 3.0 * base.lateral_search_m, 'min_step_m': -0.03}
         others = [leg for leg in CRAWL_ORDER if leg != first_leg]
-        tries = [('wider search across the walking line', wide, first_leg)]
+        fwd = {'lateral_search_m': 3.0 * base.lateral_search_m}
+        hdir = np.array([np.cos(yaw), np.sin(yaw)])
+        lag = (feet[:, :2] - body_xy) @ hdir - np.array(self.robot.nominal_feet)[:, 0]
+        rear = int(np.argmin(lag))
+        tries = [('wider search across the walking line, forward only', fwd, first_leg)]
+        if rear != first_leg:
+            tries += [(f'the rearmost foot ({LEG_NAMES[rear]}) first, wider search', fwd, rear)]
+        tries += [('wider search across the walking line', wide, first_leg)]
         tries += [('another leg first', {}, leg) for leg in others]
         tries += [('re-placing a foot up to 3 cm back allowed', {'min_step_m': -0.03},
                    first_leg),
@@ -710,6 +749,9 @@ class FootstepPlanner:
             for what, change, leg in tries:
                 self.cfg = replace(base, horizon_steps=min(base.horizon_steps, 4), **change)
                 plan = self._plan_heading(feet, body_xy, yaw, remaining, leg)
+                if (plan.ok and check is not None and plan.gait == GAIT_WALK
+                        and plan.footsteps and self._checked_prefix(plan, check)[0] <= 0):
+                    continue
                 if plan.ok:
                     plan.status_text = f'recovery ({what}): ' + plan.status_text
                     return plan

@@ -490,3 +490,59 @@ def test_plan_checked_keeps_what_the_executor_accepts():
                                 first_leg=fs.LH)
     assert not none.ok and none.status == fs.STATUS_NO_FOOTHOLD and not none.footsteps
     assert 'nothing fits' in none.status_text
+
+
+def test_recovery_steps_the_rearmost_foot_before_stepping_others_back():
+    """RH 11.5 cm behind its nominal place on flat ground and LH to step first: every LH
+    foothold would lead RH by more than the spread limit, so the plan needs the recovery.
+    The rearmost foot goes first, at least half a stride, and no foot is re-placed without
+    advancing; without that try the recovery re-placed LH where it stood."""
+    cfg = fs.PlannerConfig(trot_threshold_m=0.0, horizon_steps=4)
+    planner = fs.FootstepPlanner(ROBOT, cfg)
+    assert planner.set_map(_flat()) is None
+    nom = np.array(ROBOT.nominal_feet)
+    feet = nom.copy()
+    feet[:, 2] = 0.0
+    feet[fs.RH, 0] -= cfg.max_leg_spread_m - 0.005
+    strict = dataclasses.replace(cfg, recovery=False)
+    stuck = fs.FootstepPlanner(ROBOT, strict)
+    assert stuck.set_map(_flat()) is None
+    assert not stuck.plan(_pose(), np.array([0.6, 0.0]), feet=feet, first_leg=fs.LH).ok
+    plan = planner.plan(_pose(), np.array([0.6, 0.0]), feet=feet, first_leg=fs.LH)
+    assert plan.ok and 'rearmost foot (RH) first' in plan.status_text, plan.status_text
+    _check_plan_feasible(plan, cfg)
+    assert plan.footsteps[0].leg == fs.RH
+    assert plan.footsteps[0].position[0] - feet[fs.RH, 0] >= 0.5 * ROBOT.body_move_per_period_m
+    cur = feet.copy()
+    for s in plan.footsteps:
+        assert s.position[0] >= cur[s.leg, 0] + cfg.min_step_m - 1e-9, s
+        cur[s.leg] = s.position
+
+
+def test_plan_checked_falls_back_on_recovery_plans_the_executor_accepts():
+    """An executor refusing the first step of every normal plan (each leg first): plan_checked
+    returns a relaxed recovery plan whose first step it accepts, saying so; with the recovery
+    off it returns the explanatory empty plan."""
+    cfg = fs.PlannerConfig(trot_threshold_m=0.0, horizon_steps=4)
+    planner = fs.FootstepPlanner(ROBOT, cfg)
+    assert planner.set_map(_rocks(5)) is None
+    feet = np.array(ROBOT.nominal_feet)
+    feet[:, 2] = planner.grid.sample('elevation', feet[:, :2])
+    goal = np.array([0.6, 0.0])
+    normal = [planner.plan(_pose(), goal, feet=feet, first_leg=leg).footsteps[0]
+              for leg in fs.CRAWL_ORDER]
+    assert all(normal)
+
+    def refuse_normal(legs, pos):
+        same = any(s.leg == legs[0] and np.linalg.norm(s.position - pos[0]) < 0.005
+                   for s in normal)
+        return (0, 'the usual first steps refused') if same else (len(legs), '')
+    plan = planner.plan_checked(_pose(), goal, feet, refuse_normal, first_leg=fs.LH)
+    assert plan.ok and 'recovery (' in plan.status_text, plan.status_text
+    assert 'would refuse the first step of every plan' in plan.check_note
+    assert refuse_normal(np.array([plan.footsteps[0].leg]),
+                         plan.footsteps[0].position[None])[0] == 1
+    off = fs.FootstepPlanner(ROBOT, dataclasses.replace(cfg, recovery=False))
+    assert off.set_map(_rocks(5)) is None
+    none = off.plan_checked(_pose(), goal, feet, refuse_normal, first_leg=fs.LH)
+    assert not none.ok and 'the usual first steps refused' in none.status_text
