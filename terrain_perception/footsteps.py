@@ -726,9 +726,9 @@ class FootstepPlanner:
         (see :meth:`plan_checked`) a relaxed plan counts only if the executor accepts its first
         step, and is cut to the accepted prefix."""
         base = self.cfg
-        wide = {'lateral_search_m': 3.0 * base.lateral_search_m, 'min_step_m': -0.03}
-        others = [leg for leg in CRAWL_ORDER if leg != first_leg]
         fwd = {'lateral_search_m': 3.0 * base.lateral_search_m}
+        wide = {**fwd, 'min_step_m': -0.03}
+        others = [leg for leg in CRAWL_ORDER if leg != first_leg]
         hdir = np.array([np.cos(yaw), np.sin(yaw)])
         lag = (feet[:, :2] - body_xy) @ hdir - np.array(self.robot.nominal_feet)[:, 0]
         rear = int(np.argmin(lag))

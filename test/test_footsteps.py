@@ -51,6 +51,23 @@ def _pose(x=0.0, y=0.0, yaw=0.0):
     return T
 
 
+def _planner(cfg, grid):
+    """A planner with ``cfg`` on ``grid`` (which it must accept)."""
+    planner = fs.FootstepPlanner(ROBOT, cfg)
+    assert planner.set_map(grid) is None
+    return planner
+
+
+def _rh_behind(by):
+    """Nominal feet on the ground (z = 0) and the stance with RH ``by`` [m] behind its
+    nominal place: ``(nominal, feet)``."""
+    nom = np.array(ROBOT.nominal_feet)
+    feet = nom.copy()
+    feet[:, 2] = 0.0
+    feet[fs.RH, 0] -= by
+    return nom, feet
+
+
 def _check_plan_feasible(plan, cfg, robot=ROBOT):
     """Replay the plan: every swing keeps the COG inside the other three feet's triangle by the
     margin, and every foot (stance, lift-off and touchdown) is within reach of the body."""
@@ -314,12 +331,8 @@ def test_a_foot_left_behind_holds_the_others_back():
     planned foothold leads the rearmost other foot (both from their nominal places) by more
     than max_leg_spread_m, and the stranded foot is the one that catches up first."""
     cfg = fs.PlannerConfig(trot_threshold_m=0.0, horizon_steps=8)   # walk, look far ahead
-    planner = fs.FootstepPlanner(ROBOT, cfg)
-    assert planner.set_map(_flat()) is None
-    nom = np.array(ROBOT.nominal_feet)
-    feet = nom.copy()
-    feet[:, 2] = 0.0
-    feet[fs.RH, 0] -= cfg.max_leg_spread_m - 0.02
+    planner = _planner(cfg, _flat())
+    nom, feet = _rh_behind(cfg.max_leg_spread_m - 0.02)
     plan = planner.plan(_pose(), np.array([0.6, 0.0]), feet=feet, first_leg=fs.LF)
     assert plan.ok, plan.status_text
     _check_plan_feasible(plan, cfg)
@@ -498,15 +511,9 @@ def test_recovery_steps_the_rearmost_foot_before_stepping_others_back():
     The rearmost foot goes first, at least half a stride, and no foot is re-placed without
     advancing; without that try the recovery re-placed LH where it stood."""
     cfg = fs.PlannerConfig(trot_threshold_m=0.0, horizon_steps=4)
-    planner = fs.FootstepPlanner(ROBOT, cfg)
-    assert planner.set_map(_flat()) is None
-    nom = np.array(ROBOT.nominal_feet)
-    feet = nom.copy()
-    feet[:, 2] = 0.0
-    feet[fs.RH, 0] -= cfg.max_leg_spread_m - 0.005
-    strict = dataclasses.replace(cfg, recovery=False)
-    stuck = fs.FootstepPlanner(ROBOT, strict)
-    assert stuck.set_map(_flat()) is None
+    planner = _planner(cfg, _flat())
+    _, feet = _rh_behind(cfg.max_leg_spread_m - 0.005)
+    stuck = _planner(dataclasses.replace(cfg, recovery=False), _flat())
     assert not stuck.plan(_pose(), np.array([0.6, 0.0]), feet=feet, first_leg=fs.LH).ok
     plan = planner.plan(_pose(), np.array([0.6, 0.0]), feet=feet, first_leg=fs.LH)
     assert plan.ok and 'rearmost foot (RH) first' in plan.status_text, plan.status_text
@@ -524,8 +531,7 @@ def test_plan_checked_falls_back_on_recovery_plans_the_executor_accepts():
     returns a relaxed recovery plan whose first step it accepts, saying so; with the recovery
     off it returns the explanatory empty plan."""
     cfg = fs.PlannerConfig(trot_threshold_m=0.0, horizon_steps=4)
-    planner = fs.FootstepPlanner(ROBOT, cfg)
-    assert planner.set_map(_rocks(5)) is None
+    planner = _planner(cfg, _rocks(5))
     feet = np.array(ROBOT.nominal_feet)
     feet[:, 2] = planner.grid.sample('elevation', feet[:, :2])
     goal = np.array([0.6, 0.0])
@@ -542,7 +548,6 @@ def test_plan_checked_falls_back_on_recovery_plans_the_executor_accepts():
     assert 'would refuse the first step of every plan' in plan.check_note
     assert refuse_normal(np.array([plan.footsteps[0].leg]),
                          plan.footsteps[0].position[None])[0] == 1
-    off = fs.FootstepPlanner(ROBOT, dataclasses.replace(cfg, recovery=False))
-    assert off.set_map(_rocks(5)) is None
+    off = _planner(dataclasses.replace(cfg, recovery=False), _rocks(5))
     none = off.plan_checked(_pose(), goal, feet, refuse_normal, first_leg=fs.LH)
     assert not none.ok and 'the usual first steps refused' in none.status_text
