@@ -45,9 +45,9 @@ def _same(a, b) -> bool:
     return a == b
 
 
-def _record(bag: Path, storage: str) -> None:
+def _record(bag: Path, storage: str, **popen_kw) -> None:
     rec = _popen(BIN / 'terrain-bag', 'record', '-o', bag, '--storage', storage,
-                 *tools_fixture.TOPICS)
+                 *tools_fixture.TOPICS, **popen_kw)
     pub = _popen(sys.executable, HERE / 'tools_fixture.py', 'pub', N)
     assert pub.wait(timeout=60) == 0, pub.stderr.read()
     rec.send_signal(signal.SIGINT)
@@ -80,6 +80,15 @@ def test_record_then_play_delivers_the_same_content(tmp_path, storage):
         assert len(received) == N, f'{topic}: {len(received)} of {N} messages arrived'
         for r, e in zip(received, expected):
             assert _same(msg_to_plain(r, 0), msg_to_plain(e, 0)), f'{topic}: content differs'
+
+
+def test_record_stops_on_sigint_when_started_with_it_ignored(tmp_path):
+    # A background job of a non-interactive shell (`cmd &` in a script) starts with SIGINT
+    # ignored; Ctrl-C / kill -INT must still close the bag.
+    bag = tmp_path / 'bag'
+    _record(bag, 'mcap', preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN))
+    info = _run(BIN / 'terrain-bag', 'info', bag)
+    assert info.returncode == 0 and f'Messages:          {N * 5}' in info.stdout, info.stdout
 
 
 def test_play_topic_filter_and_timing(tmp_path):

@@ -160,8 +160,11 @@ def _record(args) -> int:
                 cls, topic, on_msg, qos_matching_publishers(node, topic, depth=1000), raw=True))
             print(f'{PROG}: recording {topic} [{type_name}]', flush=True)
 
-    # SIGTERM closes the bag like Ctrl-C does.
+    # SIGTERM closes the bag like Ctrl-C does. SIGINT gets the same handler explicitly: a
+    # process started as a background job of a non-interactive shell inherits SIGINT ignored,
+    # and Python then installs no KeyboardInterrupt for it (ros2 bag record handles it itself too).
     signal.signal(signal.SIGTERM, _interrupt)
+    signal.signal(signal.SIGINT, _interrupt)
     end = time.monotonic() + args.duration if args.duration else None
     next_scan = 0.0
     try:
