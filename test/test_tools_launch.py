@@ -61,6 +61,7 @@ nodes:
     remappings: {{chatter: /b/chatter}}
     respawn: {str(respawn).lower()}
     respawn_delay: 0.2
+    nice: 7
 ''')
     return launch
 
@@ -89,6 +90,11 @@ def test_two_processes_with_params_and_remaps_stop_cleanly_on_sigint(tmp_path):
                                    '--timeout', '20'], capture_output=True, text=True,
                                   timeout=60)
             assert f'data: {word}' in echo.stdout, echo.stdout + echo.stderr
+        # talker_b's launch entry lowers its priority by 7 (field 19 of /proc/PID/stat);
+        # talker_a keeps the launcher's.
+        nice = {n: int(Path(f'/proc/{p}/stat').read_text().rsplit(')', 1)[1].split()[16])
+                for n, p in pids.items()}
+        assert nice['talker_b'] == nice['talker_a'] + 7 or nice['talker_b'] == 19, nice
     finally:
         proc.send_signal(signal.SIGINT)
         proc.wait(timeout=30)
@@ -119,6 +125,7 @@ def test_bad_launch_files_give_one_error_line(tmp_path):
         'bad.yaml': 'nodes: [',
         'noexe.yaml': 'nodes:\n  - name: x\n    executable: no_such_program\n',
         'undeclared.yaml': 'nodes:\n  - name: x\n    command: [true]\n    args: ["${nope}"]\n',
+        'badnice.yaml': 'nodes:\n  - name: x\n    command: [true]\n    nice: -5\n',
     }
     for name, text in cases.items():
         path = tmp_path / name

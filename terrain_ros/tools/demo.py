@@ -56,7 +56,8 @@ import yaml
 
 from terrain_ros.env import CONFIG_DIR, safe_env
 from terrain_ros.tools.common import ToolError, fail
-from terrain_ros.tools.launch import Launcher, NodeSpec, _die_with_parent, load_launch_file
+from terrain_ros.tools.launch import (Launcher, NodeSpec, _die_with_parent, child_setup,
+                                      load_launch_file)
 
 PROG = 'terrain-demo'
 REPO_DIR = CONFIG_DIR.parent
@@ -236,7 +237,7 @@ class LoggedLauncher(Launcher):
                   f'{" ".join(item.spec.command)}\n')
         self._logs.append(log)
         proc = subprocess.Popen(item.spec.command, env=item.spec.env, stdout=log,
-                                stderr=subprocess.STDOUT, preexec_fn=_die_with_parent)
+                                stderr=subprocess.STDOUT, preexec_fn=child_setup(item.spec))
         item.proc = proc
         self.procs[item.spec.name].append(proc)
 

@@ -18,6 +18,7 @@ The launch file (see ``config/launch/*.yaml``)::
         respawn: false         # restart when it exits
         respawn_delay: 1.0     # [s]
         required: false        # when it exits (and is not respawned), stop everything
+        nice: 0                # CPU priority 0-19 (higher yields the CPU to the others)
 
 ``${name}`` is replaced by the argument's value; ``${config}`` by the project's config folder.
 Ctrl-C (or SIGTERM) is forwarded to every process; a process still running after
@@ -29,6 +30,7 @@ from __future__ import annotations
 
 import argparse
 import ctypes
+import functools
 import os
 import re
 import shlex
@@ -58,6 +60,7 @@ class NodeSpec:
     respawn: bool = False
     respawn_delay: float = 1.0
     required: bool = False
+    nice: int = 0
 
 
 @dataclass
@@ -151,18 +154,31 @@ def load_launch_file(path: Path, cli_args: Dict[str, str]) -> List[NodeSpec]:
             cmd += ros
         env = dict(base_env)
         env.update({k: str(v) for k, v in (n.get('env') or {}).items()})
+        nice = n.get('nice', 0)
+        if isinstance(nice, bool) or not isinstance(nice, int) or not 0 <= nice <= 19:
+            raise ToolError(f'node {name!r}: nice must be an integer 0-19 (a lower priority; '
+                            f'raising one needs root), not {nice!r}')
         specs.append(NodeSpec(name, cmd, env, bool(n.get('respawn', False)),
-                              float(n.get('respawn_delay', 1.0)), bool(n.get('required', False))))
+                              float(n.get('respawn_delay', 1.0)), bool(n.get('required', False)),
+                              nice))
     return specs
 
 
-def _die_with_parent() -> None:
-    # Runs in the child before exec: own process group, SIGTERM when the launcher dies.
+def _die_with_parent(nice: int = 0) -> None:
+    # Runs in the child before exec: own process group, SIGTERM when the launcher dies, and
+    # the node's CPU priority.
     os.setsid()
     try:
         ctypes.CDLL('libc.so.6', use_errno=True).prctl(_PR_SET_PDEATHSIG, signal.SIGTERM)
     except OSError:
         pass
+    if nice:
+        os.nice(nice)
+
+
+def child_setup(spec: NodeSpec):
+    """The ``preexec_fn`` that starts ``spec``'s process: see :func:`_die_with_parent`."""
+    return functools.partial(_die_with_parent, spec.nice)
 
 
 def _pump(name: str, stream, out) -> None:
@@ -181,7 +197,7 @@ class Launcher:
     def _start(self, item: Running) -> None:
         proc = subprocess.Popen(item.spec.command, env=item.spec.env, stdout=subprocess.PIPE,
                                 stderr=subprocess.STDOUT, text=True, bufsize=1,
-                                preexec_fn=_die_with_parent)
+                                preexec_fn=child_setup(item.spec))
         item.proc = proc
         t = threading.Thread(target=_pump, args=(item.spec.name, proc.stdout, sys.stdout),
                              daemon=True)
