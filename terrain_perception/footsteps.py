@@ -85,8 +85,11 @@ class PlannerConfig:
         "foothold omega and the nominal-distance cost prefer): 'rule', the centre of Shao's "
         'area [foot + min_step, nominal + wL + 2A] (the paper\'s stride rule (2A + wL - kL) / 2) '
         "clipped to the max step length; 'capped', the centre of that area after the max-step "
-        'cap (about half the max step on flat ground: a shorter, slower stride)',
-        choices=('capped', 'rule'))
+        "cap (about half the max step on flat ground: a shorter, slower stride); 'adaptive', "
+        "'rule' where every cell of the leg's capped area is flat by Shao's gait test "
+        "(|h - ground| + Dev(h) < trot_threshold_m, the stance's mean foot height as ground) "
+        "and 'capped' elsewhere: long strides on open ground, short ones among obstacles",
+        choices=('capped', 'rule', 'adaptive'))
     min_step_m: float = param(0.01, 'shortest step along the walking direction [m]: a plan of '
                               'steps in place is no plan', 0.0, 1.0)
     lateral_search_m: float = param(0.03, 'half-width of each search area across the walking '
@@ -505,23 +508,43 @@ class FootstepPlanner:
         return np.c_[xy, np.where(np.isfinite(z), z, fallback)]
 
     def _area(self, foot_u: float, nom_u: float, nom_v: float, wL: float, A: float,
-              lateral_m: Optional[float] = None):
+              lateral_m: Optional[float] = None, ground_z: Optional[float] = None):
         """Search area of one leg: along-track [foot + min_step, nominal + wL + 2A] (capped by the
         max step length), across-track nominal +- ``lateral_m`` (default lateral_search).
-        Returns (u, v, centre_u)."""
+        ``ground_z`` (the stance's height) lets ``stride_centre: adaptive`` test the area's
+        flatness; without it 'adaptive' centres as 'capped'. Returns (u, v, centre_u)."""
         res = self.grid.resolution_m
         lo = foot_u + self.cfg.min_step_m
         rule_hi = nom_u + wL + 2.0 * A
         hi = min(rule_hi, foot_u + self.robot.max_step_length_m)
         hi = max(hi, lo)
-        centre = 0.5 * (lo + hi)
-        if self.cfg.stride_centre == 'rule':
-            centre = min(0.5 * (lo + max(rule_hi, lo)), hi)
         us = np.arange(lo, hi + 0.5 * res, res) if hi > lo else np.array([lo])
         w = self.cfg.lateral_search_m if lateral_m is None else lateral_m
         vs = nom_v + np.arange(-w, w + 0.5 * res, res) if w > 0 else np.array([nom_v])
         U, V = np.meshgrid(us, vs, indexing='ij')
-        return U.ravel(), V.ravel(), centre
+        u, v = U.ravel(), V.ravel()
+        centre = 0.5 * (lo + hi)
+        mode = self.cfg.stride_centre
+        if mode == 'rule' or (mode == 'adaptive' and ground_z is not None
+                              and self._area_flat(u, v, ground_z)):
+            centre = min(0.5 * (lo + max(rule_hi, lo)), hi)
+        return u, v, centre
+
+    def _area_flat(self, u: np.ndarray, v: np.ndarray, ground_z: float) -> bool:
+        """Shao's flatness test (paper 002 Fig. 4) on the cells at along/across-track ``u, v``:
+        all observed and ``|h - ground_z| + Dev(h) < trot_threshold_m``."""
+        g = self.grid
+        ij, inside = self._cells(self._to_map(u, v))
+        h = g[ELEVATION][ij[:, 0], ij[:, 1]]
+        if not np.all(inside & np.isfinite(h)):
+            return False
+        i0, j0 = ij.min(0)
+        i1, j1 = ij.max(0) + 1
+        # Dev needs the 3x3 neighbours: evaluate on the area's bounding box plus one cell.
+        a0, b0 = max(i0 - 1, 0), max(j0 - 1, 0)
+        sub = g[ELEVATION][a0:i1 + 1, b0:j1 + 1]
+        fc = flatness_cost(sub, ground_z)[ij[:, 0] - a0, ij[:, 1] - b0]
+        return bool(np.all(fc < self.cfg.trot_threshold_m))
 
     def _to_map(self, u: np.ndarray, v: np.ndarray) -> np.ndarray:
         return self.origin + np.outer(u, self.hdir) + np.outer(v, self.ldir)
@@ -543,24 +566,12 @@ class FootstepPlanner:
         in position (``kL - wL < A/2``), else walk. Returns ``(gait, reason)``."""
         if not self.robot.trot:
             return GAIT_WALK, f'{self.robot.name} walks only (robot profile gait.trot)'
-        g = self.grid
         ground = float(np.mean(feet[:, 2]))
         fu, _ = self._uv(feet)
         flat_all = True
         for k in range(4):
             u, v, _ = self._area(fu[k], self.nom_u[k], self.nom_v[k], wL, A)
-            ij, inside = self._cells(self._to_map(u, v))
-            h = g[ELEVATION][ij[:, 0], ij[:, 1]].astype(np.float64)
-            if not np.all(inside & np.isfinite(h)):
-                flat_all = False
-                break
-            i0, j0 = ij.min(0)
-            i1, j1 = ij.max(0) + 1
-            # Dev needs the 3x3 neighbours: evaluate on the area's bounding box plus one cell.
-            a0, b0 = max(i0 - 1, 0), max(j0 - 1, 0)
-            sub = g[ELEVATION][a0:i1 + 1, b0:j1 + 1]
-            fc = flatness_cost(sub, ground)[ij[:, 0] - a0, ij[:, 1] - b0]
-            if not np.all(fc < self.cfg.trot_threshold_m):
+            if not self._area_flat(u, v, ground):
                 flat_all = False
                 break
         if not flat_all:
@@ -868,7 +879,7 @@ class FootstepPlanner:
         (k, 3), u, v, cells (k, 2), area centre u)``, or ``(None, why not)``."""
         cfg, g = self.cfg, self.grid
         u, v, centre = self._area(fu0[leg], self.nom_u[leg], self.nom_v[leg], wL0, A,
-                                  lateral_m)
+                                  lateral_m, float(np.mean(state.feet[:, 2])))
         xy = self._to_map(u, v)
         ij, inside = self._cells(xy)
         ok = inside & self.allowed[ij[:, 0], ij[:, 1]]

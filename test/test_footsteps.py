@@ -148,18 +148,24 @@ def test_obstacle_selects_walk_in_crawl_order_and_avoids_edges():
     _check_plan_feasible(plan, cfg)
 
 
-@pytest.mark.parametrize('centre', ['capped', 'rule'])
+def _lf_ahead():
+    """Nominal feet on the ground (z = 0) with LF 0.6 A ahead: flat ground, feet out of
+    position (kL - wL = 0.6 A > A / 2)."""
+    feet = np.array(ROBOT.nominal_feet)
+    feet[:, 2] = 0.0
+    feet[fs.LF, 0] += 0.6 * ROBOT.body_move_per_period_m
+    return feet
+
+
+@pytest.mark.parametrize('centre', ['capped', 'rule', 'adaptive'])
 def test_flat_but_feet_out_of_position_walks_with_the_stride_rule(centre):
     # the paper's stride rule alone: our spread limit (tested below) would cap the leading
     # LF's next stride while the other feet lag
     cfg = fs.PlannerConfig(max_leg_spread_m=0.0, stride_centre=centre)
     g = _flat()
-    planner = fs.FootstepPlanner(ROBOT, cfg)
-    assert planner.set_map(g) is None
+    planner = _planner(cfg, g)
     A = ROBOT.body_move_per_period_m
-    feet = np.array(ROBOT.nominal_feet)
-    feet[:, 2] = 0.0
-    feet[fs.LF, 0] += 0.6 * A                     # kL - wL = 0.6 A > A / 2
+    feet = _lf_ahead()
     plan = planner.plan(_pose(), np.array([0.6, 0.0]), feet=feet)
     assert plan.ok and plan.gait == fs.GAIT_WALK, plan.status_text
     assert 'out of position' in plan.status_text
@@ -172,14 +178,36 @@ def test_flat_but_feet_out_of_position_walks_with_the_stride_rule(centre):
         rule_hi = ROBOT.nominal_feet[s.leg][0] + 2 * A
         hi = min(rule_hi, u0 + ROBOT.max_step_length_m)
         lo = u0 + cfg.min_step_m
+        # on flat ground 'adaptive' is the rule
         want = 0.5 * (lo + max(hi, lo)) if centre == 'capped' else \
             min(0.5 * (lo + max(rule_hi, lo)), max(hi, lo))
         long_steps += want > 0.5 * (lo + max(hi, lo)) + RES
         assert s.position[0] == pytest.approx(want, abs=RES)
         assert s.position[1] == pytest.approx(feet[s.leg, 1], abs=RES)
     # the two centres differ here: the rule's strides are longer where the cap binds
-    assert (long_steps > 0) == (centre == 'rule')
+    assert (long_steps > 0) == (centre != 'capped')
     _check_plan_feasible(plan, cfg)
+
+
+def test_adaptive_stride_is_capped_where_the_search_area_is_not_flat():
+    # A 2.5 cm knob at the lateral edge of every leg's search area (Shao's flatness cost above
+    # the 2 cm threshold there): 'adaptive' must take the short capped strides, not the rule's.
+    h = np.zeros((150, 150))
+    feet = _lf_ahead()
+    for k in range(4):
+        ij = _flat().world_to_index(np.array([[feet[k, 0] + 0.05,
+                                               ROBOT.nominal_feet[k][1] + 0.03]]))[0]
+        h[ij[0], ij[1]] = 0.025
+    g = _grid(h)
+    plans = {}
+    for centre in ('capped', 'rule', 'adaptive'):
+        cfg = fs.PlannerConfig(max_leg_spread_m=0.0, stride_centre=centre)
+        plans[centre] = _planner(cfg, g).plan(_pose(), np.array([0.6, 0.0]), feet=feet)
+        assert plans[centre].ok, plans[centre].status_text
+    where = {c: np.array([s.position for s in p.footsteps]) for c, p in plans.items()}
+    assert np.array_equal(where['adaptive'], where['capped'])
+    # the knobs leave the centres apart: the rule still strides further
+    assert where['rule'][:, 0].sum() > where['capped'][:, 0].sum() + RES
 
 
 @pytest.mark.parametrize('seed', [0, 1, 2, 3])

@@ -119,10 +119,11 @@ def _rocks_walk(course, start_x: float, goal_x: float, seed: int, sensing: bool 
         cfg = WalkingConfig(**wkw)
         runner = WalkRunner(client, robot, cfg, dt_s=DT, height=height,
                             ground_id=(world.floor_id, world.terrain_id))
-        # Walk gait only: the controller's trot is Shao's quasi-static one (COG on the
-        # diagonal), kept out of this measurement.
-        planner = FootstepPlanner(m, PlannerConfig(cost_source='kolter', trot_threshold_m=0.0,
-                                                   horizon_steps=4, **(planner_kw or {})))
+        # Walk gait only: LittleDog's profile has no trot (the controller's trot is Shao's
+        # quasi-static one, COG on the diagonal). trot_threshold_m keeps its default: it is also
+        # the flatness test of stride_centre 'adaptive'.
+        planner = FootstepPlanner(m, PlannerConfig(**{'cost_source': 'kolter', 'horizon_steps': 4,
+                                                      **(planner_kw or {})}))
         bad = planner.set_map(course)
         if bad is not None:
             raise ValueError(f'planner refused the course: {bad.status_text}')
