@@ -51,7 +51,12 @@ def _record(bag: Path, storage: str, **popen_kw) -> None:
     pub = _popen(sys.executable, HERE / 'tools_fixture.py', 'pub', N)
     assert pub.wait(timeout=60) == 0, pub.stderr.read()
     rec.send_signal(signal.SIGINT)
-    out, err = rec.communicate(timeout=30)
+    try:
+        out, err = rec.communicate(timeout=30)
+    except subprocess.TimeoutExpired:
+        rec.kill()          # leave no recorder behind
+        out, err = rec.communicate()
+        pytest.fail(f'terrain-bag record did not stop within 30 s of SIGINT: {err[-500:]}')
     assert rec.returncode == 0, err
     assert f'wrote {N * len(tools_fixture.TOPICS)} messages' in out, out + err
 
