@@ -81,7 +81,7 @@ class PlannerConfig:
         1.0, "gain on the quadratic term of Shao's omega = gain (x - centre)^2 + A "
         '(paper: 1)', 0.0, 1e4)
     stride_centre: str = param(
-        'capped', "where a leg's search area is centred along the walking direction (the "
+        'adaptive', "where a leg's search area is centred along the walking direction (the "
         "foothold omega and the nominal-distance cost prefer): 'rule', the centre of Shao's "
         'area [foot + min_step, nominal + wL + 2A] (the paper\'s stride rule (2A + wL - kL) / 2) '
         "clipped to the max step length; 'capped', the centre of that area after the max-step "
@@ -229,12 +229,14 @@ def cost_layer(grid: GridMap, source: str = 'layer',
     return features.cost_map(grid[ELEVATION], grid.resolution_m, cfg)
 
 
-def flatness_cost(heights: np.ndarray, ground_z: float) -> np.ndarray:
+def flatness_cost(heights: np.ndarray, ground_z: float,
+                  dev: Optional[np.ndarray] = None) -> np.ndarray:
     """Shao's gait-selection cost ``|h - ground| + Dev(h)`` [m] (paper 002 eq. 2-3, with h taken
     relative to the current stance's ground height and its magnitude used, so a dip is not
-    mistaken for flat ground). Dev comes from :func:`terrain_perception.features.shao_dev`."""
+    mistaken for flat ground). Dev comes from :func:`terrain_perception.features.shao_dev` on
+    ``heights``, or is ``dev`` (the same shape) when the caller has it already."""
     h = np.asarray(heights, dtype=np.float64)
-    return np.abs(h - ground_z) + features.shao_dev(h)
+    return np.abs(h - ground_z) + (features.shao_dev(h) if dev is None else dev)
 
 
 def unsafe_cells(heights: np.ndarray, resolution_m: float, foot_radius_m: float,
@@ -491,6 +493,7 @@ class FootstepPlanner:
         if not np.any(np.isfinite(cost)):
             return failed(STATUS_BAD_MAP, 'cost layer has no finite value')
         self.grid, self.cost = grid, cost
+        self._dev = None     # Shao's Dev(h) of the whole map, computed when first needed
         self.allowed = candidate_mask(grid, self.cfg) & np.isfinite(cost)
         if self.cfg.max_unevenness > 0:
             k = self.cfg.map_safety_factor
@@ -533,17 +536,14 @@ class FootstepPlanner:
     def _area_flat(self, u: np.ndarray, v: np.ndarray, ground_z: float) -> bool:
         """Shao's flatness test (paper 002 Fig. 4) on the cells at along/across-track ``u, v``:
         all observed and ``|h - ground_z| + Dev(h) < trot_threshold_m``."""
-        g = self.grid
         ij, inside = self._cells(self._to_map(u, v))
-        h = g[ELEVATION][ij[:, 0], ij[:, 1]]
+        h = self.grid[ELEVATION][ij[:, 0], ij[:, 1]]
         if not np.all(inside & np.isfinite(h)):
             return False
-        i0, j0 = ij.min(0)
-        i1, j1 = ij.max(0) + 1
-        # Dev needs the 3x3 neighbours: evaluate on the area's bounding box plus one cell.
-        a0, b0 = max(i0 - 1, 0), max(j0 - 1, 0)
-        sub = g[ELEVATION][a0:i1 + 1, b0:j1 + 1]
-        fc = flatness_cost(sub, ground_z)[ij[:, 0] - a0, ij[:, 1] - b0]
+        # Dev is a 3x3 stencil: taken once from the whole map
+        if self._dev is None:
+            self._dev = features.shao_dev(self.grid[ELEVATION])
+        fc = flatness_cost(h, ground_z, self._dev[ij[:, 0], ij[:, 1]])
         return bool(np.all(fc < self.cfg.trot_threshold_m))
 
     def _to_map(self, u: np.ndarray, v: np.ndarray) -> np.ndarray:
