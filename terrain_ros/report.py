@@ -142,6 +142,12 @@ def interp_poses(t_src: np.ndarray, T_src: np.ndarray, t: np.ndarray) -> np.ndar
     return T_src[k]
 
 
+def heading_error_rad(T_est: np.ndarray, T_true: np.ndarray) -> np.ndarray:
+    """Signed yaw of estimated minus true poses, (N, 4, 4) each, wrapped to [-pi, pi) [rad]."""
+    yaw = lambda T: np.arctan2(T[:, 1, 0], T[:, 0, 0])
+    return (yaw(T_est) - yaw(T_true) + np.pi) % (2.0 * np.pi) - np.pi
+
+
 def estimated_path(d: RunData) -> Tuple[np.ndarray, np.ndarray, str]:
     """The robot's own pose estimate over time: dead reckoning re-anchored by the latest ICP
     correction ``T_map_odom`` (paper 000 Fig. 10), else the ICP poses. Returns (t, T, label)."""
@@ -325,9 +331,14 @@ def compute_summary(d: RunData, model=None, cost_cfg: CostConfig = CostConfig())
         T_true = interp_poses(d.gt_t, d.gt_T, t_est[-1:])[0]
         s['final_localisation_error_m'] = round(
             float(np.linalg.norm(T_est[-1, :3, 3] - T_true[:3, 3])), 5)
-        err = np.linalg.norm(T_est[:, :3, 3] - interp_poses(d.gt_t, d.gt_T, t_est)[:, :3, 3],
-                             axis=1)
+        T_gt = interp_poses(d.gt_t, d.gt_T, t_est)
+        err = np.linalg.norm(T_est[:, :3, 3] - T_gt[:, :3, 3], axis=1)
         s['rms_localisation_error_m'] = round(float(np.sqrt(np.mean(err ** 2))), 5)
+        # Heading: a slip the leg odometry misses turns the robot under its estimate; the
+        # position error alone hides it (the robot pivots roughly in place).
+        yaw_err = np.degrees(np.abs(heading_error_rad(T_est, T_gt)))
+        s['final_heading_error_deg'] = round(float(yaw_err[-1]), 2)
+        s['max_heading_error_deg'] = round(float(np.max(yaw_err)), 2)
     else:
         s['final_localisation_error_m'] = None
         missing['final_localisation_error_m'] = (
@@ -671,7 +682,9 @@ def format_summary(s: dict) -> str:
         f'{s.get("distance_to_cross_m", float("nan")):.2f} m; falls {s.get("falls")}',
         f'  sim time       {s["sim_time_s"]:.1f} s in {s["wall_time_s"]:.0f} s wall '
         f'(RTF {s["real_time_factor"]})',
-        f'  localisation   final error {f("final_localisation_error_m", "{:.4f}", " m")}; '
+        f'  localisation   final error {f("final_localisation_error_m", "{:.4f}", " m")}, '
+        f'heading {f("final_heading_error_deg", "{:.1f}", " deg")} '
+        f'(max {f("max_heading_error_deg", "{:.1f}", " deg")}); '
         f'{s.get("icp_corrections", 0)} ICP corrections',
         f'  map RMSE       {f("map_rmse_observed_m", "{:.4f}", " m")} on '
         f'{s.get("map_observed_cells", 0)} observed cells (median |error| '

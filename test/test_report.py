@@ -1,7 +1,9 @@
-"""The demo report's latency figures: per-capture stamps in, per-node wall times out."""
+"""The demo report: latency figures (per-capture stamps in, per-node wall times out) and the
+localisation errors against ground truth."""
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 
 from terrain_ros.report import CourseInfo, RunData, compute_summary, format_summary
@@ -38,3 +40,30 @@ def test_summary_reports_the_per_node_latency_with_the_total():
     assert st['icp_mapper'] == {'median': 350.0, 'p95': pytest.approx(395.0), 'captures': 2}
     assert st['footstep_planner']['captures'] == 1
     assert 'icp_mapper 350' in format_summary(s)
+
+
+def _pose(x, y, yaw_deg):
+    c, s_ = np.cos(np.radians(yaw_deg)), np.sin(np.radians(yaw_deg))
+    T = np.eye(4)
+    T[:2, :2] = [[c, -s_], [s_, c]]
+    T[:2, 3] = x, y
+    return T
+
+
+def test_summary_reports_the_heading_error_a_slip_leaves():
+    # The robot pivots 11 deg in place at t = 2 s (a slip); the estimate keeps the old
+    # heading and ends 3 mm off in position: the position error alone would hide it.
+    d = RunData(CourseInfo('rocks-6cm', 0, 0.4, 1.0, 1.75, 2.15), 'littledog')
+    t = np.arange(0.0, 4.0, 0.5)
+    d.gt_t = t
+    d.gt_T = np.stack([_pose(0.4 + 0.01 * k, 0.0, 0.0 if k < 4 else 11.0)
+                       for k in range(len(t))])
+    d.dr_t = t
+    d.dr_T = np.stack([_pose(0.4 + 0.01 * k + (0.003 if k == len(t) - 1 else 0.0), 0.0, 179.0
+                             if k == 0 else 0.0) for k in range(len(t))])
+    s = compute_summary(d)
+    assert s['final_localisation_error_m'] == pytest.approx(0.003, abs=1e-6)
+    assert s['final_heading_error_deg'] == pytest.approx(11.0, abs=1e-6)
+    # wrapped: 179 deg against 0 is 179 deg off, not 181
+    assert s['max_heading_error_deg'] == pytest.approx(179.0, abs=1e-6)
+    assert 'heading 11.0 deg (max 179.0 deg)' in format_summary(s)
