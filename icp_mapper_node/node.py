@@ -6,7 +6,8 @@ Subscriptions:
     /stereo/points_coarse  sensor_msgs/PointCloud2, its sparse subsample (sensor data; used for
                            ICP when ``use_coarse_cloud`` and one with the same stamp arrived)
     /odom/dead_reckoning   nav_msgs/Odometry, ``T_odom_base`` (reliable)
-    /imu/data              sensor_msgs/Imu (sensor data; only with ``use_gravity_prior``)
+    /imu/data              sensor_msgs/Imu (sensor data; only with ``use_gravity_prior`` or
+                           ``use_imu_rotation_prior``): the up vector, the body's attitude
     /joint_states          sensor_msgs/JointState (sensor data): the legs' pose at each cloud's
                            stamp, so points on the robot's own legs are not mapped
                            (``self_filter_margin_m``; no filter while none has arrived)
@@ -49,6 +50,7 @@ from terrain_perception.config import param
 from terrain_perception.kinematics import self_mask
 from terrain_perception.mapping import IcpMapper, MapperConfig, OdometryGate, PoseBuffer
 from terrain_perception.robot_model import load_robot_model
+from terrain_perception.transforms import quat_to_R
 from terrain_ros.conversions import (ConvertOnce, JointStateError, cloud_to_xyz, grid_to_msg,
                                      joint_state_to_arrays, make_header, matrix_to_pose,
                                      odometry, pose_stamped, pose_to_matrix, stamp_to_sec,
@@ -86,6 +88,9 @@ class IcpMapperNodeConfig:
     self_filter_max_gap_s: float = param(
         0.1, 'the joint state used for a cloud must be stamped within this of it [s]; otherwise '
         'the cloud is mapped unfiltered and counted', 0.0, 10.0)
+    imu_max_gap_s: float = param(
+        0.05, 'the IMU attitude used for a cloud (use_imu_rotation_prior) must be stamped within '
+        'this of it [s]; otherwise the prior is dead reckoning\'s alone', 0.0, 10.0)
 
 
 def _odom_key(reason: str) -> str:
@@ -145,7 +150,8 @@ class IcpMapperNode(Node):
         if c.use_coarse_cloud:
             self.create_subscription(PointCloud2, '/stereo/points_coarse', self._on_coarse,
                                      SENSOR_QOS)
-        if self.mapper_cfg.use_gravity_prior:
+        self._attitudes: Deque[tuple] = deque(maxlen=400)   # (stamp [s], R_world_base)
+        if self.mapper_cfg.use_gravity_prior or self.mapper_cfg.use_imu_rotation_prior:
             self.create_subscription(Imu, '/imu/data', self._on_imu, SENSOR_QOS)
         if c.self_filter_margin_m >= 0:
             self.create_subscription(JointState, '/joint_states', self._on_joint_state,
@@ -214,7 +220,29 @@ class IcpMapperNode(Node):
             self.counters.bump('bad_imu', f'IMU specific force {n:.2f} m/s^2 is not gravity-like')
             return
         # at rest the accelerometer measures +g along "up"
-        self._up_base = np.asarray(self.robot.T_base_imu)[:3, :3] @ (f / n)
+        R_base_imu = np.asarray(self.robot.T_base_imu)[:3, :3]
+        self._up_base = R_base_imu @ (f / n)
+        o = msg.orientation
+        q = np.array([o.x, o.y, o.z, o.w], dtype=np.float64)
+        qn = np.linalg.norm(q)
+        if not np.isfinite(qn) or abs(qn - 1.0) > 0.1:
+            self.counters.bump('bad_imu_orientation', f'IMU orientation quaternion norm {qn:.3f}')
+            return
+        t = stamp_to_sec(msg.header.stamp)
+        if self._attitudes and t < self._attitudes[-1][0]:
+            self._attitudes.clear()                 # time went back (a replayed bag restarted)
+        self._attitudes.append((t, quat_to_R(q / qn) @ R_base_imu.T))
+
+    def _attitude_at(self, t: float) -> Optional[np.ndarray]:
+        """The IMU's ``R_world_base`` nearest to ``t`` within ``imu_max_gap_s``, else None."""
+        if not self.mapper_cfg.use_imu_rotation_prior or not self._attitudes:
+            return None
+        stamp, R = min(self._attitudes, key=lambda a: abs(a[0] - t))
+        if abs(stamp - t) > self.node_cfg.imu_max_gap_s:
+            self.counters.bump('no_imu_attitude', f'no IMU attitude within '
+                               f'{self.node_cfg.imu_max_gap_s} s of the cloud at {t:.3f} s')
+            return None
+        return R
 
     def _on_cloud(self, msg: PointCloud2) -> None:
         t = stamp_to_sec(msg.header.stamp)
@@ -236,7 +264,7 @@ class IcpMapperNode(Node):
             if self._up_base is not None:
                 up_cam = self.T_base_camera[:3, :3].T @ self._up_base
             res = self.mapper.update(cloud, T_odom_base, t, up_camera=up_cam,
-                                     prepared=prepared)
+                                     prepared=prepared, attitude=self._attitude_at(t))
         except ValueError as exc:
             self.counters.bump(_cloud_key(str(exc)), str(exc))
             return

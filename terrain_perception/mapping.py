@@ -155,6 +155,10 @@ class MapperConfig:
     fuse_rejected: bool = param(False, 'fuse captures whose alignment was rejected (at the '
                                 'prior pose) into the maps')
     # ---- roll / pitch priors
+    use_imu_rotation_prior: bool = param(
+        True, "turn the prior by the IMU's attitude change since the last accepted capture "
+        '(a slip the leg odometry misses turns the body but not its estimate); the position '
+        'stays dead reckoning\'s')
     use_gravity_prior: bool = param(False, 'level the prior with a measured up vector (IMU)')
     use_ground_plane_prior: bool = param(False, 'level the prior with a RANSAC ground plane')
     ground_plane_threshold_m: float = param(0.01, 'RANSAC inlier distance [m]', 1e-4, 1.0)
@@ -880,6 +884,8 @@ class IcpMapper:
         self._estimation = make_estimation(config)
         self._recent_rmse: Deque[float] = collections.deque(maxlen=20)
         self._rejections_in_a_row = 0
+        # (IMU attitude R_world_base, map pose) at the last accepted capture
+        self._accepted_attitude: Optional[Tuple[np.ndarray, np.ndarray]] = None
 
     # ---- public state ----------------------------------------------------------------------
     @property
@@ -961,7 +967,8 @@ class IcpMapper:
     def update(self, cloud_camera: np.ndarray, T_odom_base: np.ndarray, stamp_s: float,
                coarse_camera: Optional[np.ndarray] = None,
                up_camera: Optional[np.ndarray] = None,
-               prepared: Optional[Tuple[np.ndarray, np.ndarray]] = None) -> MapperUpdate:
+               prepared: Optional[Tuple[np.ndarray, np.ndarray]] = None,
+               attitude: Optional[np.ndarray] = None) -> MapperUpdate:
         """Localise and fuse one capture.
 
         Args:
@@ -973,6 +980,8 @@ class IcpMapper:
             up_camera: optional measured up direction in the camera frame (gravity prior).
             prepared: the result of :meth:`prepare` for this cloud, if the caller validated it
                 already (saves the second pass).
+            attitude: optional IMU attitude ``R_world_base`` (3x3) at the capture's stamp
+                (``use_imu_rotation_prior``).
 
         Returns:
             :class:`MapperUpdate`. Raises ValueError for bad input; then nothing changes.
@@ -990,14 +999,20 @@ class IcpMapper:
             up_camera = np.asarray(up_camera, dtype=np.float64).reshape(3)
             if not np.all(np.isfinite(up_camera)) or np.linalg.norm(up_camera) < 1e-6:
                 raise ValueError('up vector must be finite and non-zero')
-        result = self.align(src, T_odom_base, up_camera)
+        if attitude is not None:
+            attitude = np.asarray(attitude, dtype=np.float64).reshape(3, 3)
+            if not np.all(np.isfinite(attitude)) or not np.allclose(
+                    attitude @ attitude.T, np.eye(3), atol=1e-3):
+                raise ValueError('IMU attitude must be a finite rotation matrix')
+        result = self.align(src, T_odom_base, up_camera, attitude)
         if result.accepted or c.fuse_rejected:
             self.fuse(fine, src, result.T_map_camera, result.T_map_base, stamp_s)
             result.fused = True
         return result
 
     def align(self, src_camera: np.ndarray, T_odom_base: np.ndarray,
-              up_camera: Optional[np.ndarray] = None) -> MapperUpdate:
+              up_camera: Optional[np.ndarray] = None,
+              attitude: Optional[np.ndarray] = None) -> MapperUpdate:
         """ICP of camera-frame source points against the coarse model, with the guards.
 
         Updates ``T_map_odom`` when accepted; never touches the maps.
@@ -1008,6 +1023,11 @@ class IcpMapper:
                 np.linalg.norm(T_odom_base[:3, 3] - self._last_odom[:3, 3]))
         self._last_odom = T_odom_base.copy()
         T_prior = self.T_map_odom @ T_odom_base
+        if c.use_imu_rotation_prior and attitude is not None \
+                and self._accepted_attitude is not None:
+            # the body's rotation since the last accepted capture, as the IMU measured it
+            R_then, T_map_then = self._accepted_attitude
+            T_prior[:3, :3] = T_map_then[:3, :3] @ (R_then.T @ attitude)
         T_cam_prior = T_prior @ self.T_base_camera
         up = up_camera if c.use_gravity_prior else None
         if up is None and c.use_ground_plane_prior:
@@ -1026,7 +1046,7 @@ class IcpMapper:
         if n_model == 0:
             self.counters['first_capture'] += 1
             T_base = T_cam_prior @ invert(self.T_base_camera)
-            self._accept(T_base, T_odom_base)
+            self._accept(T_base, T_odom_base, attitude)
             return MapperUpdate(True, False, '', T_base, T_cam_prior, T_prior,
                                 self.T_map_odom.copy(), n_source=len(src_camera))
         src = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(src_camera))
@@ -1095,7 +1115,7 @@ class IcpMapper:
             self.counters['degenerate_alignments'] += 1
             self.counters['directions_kept_at_prior'] += n_degenerate
         self._recent_rmse.append(rmse)
-        self._accept(T_base, T_odom_base)
+        self._accept(T_base, T_odom_base, attitude)
         upd.T_map_odom = self.T_map_odom.copy()
         return upd
 
@@ -1108,9 +1128,12 @@ class IcpMapper:
         n = np.asarray(self._model.normals)[corr[:, 1]]
         return float(np.sqrt(np.mean(np.einsum('ij,ij->i', p - q, n) ** 2)))
 
-    def _accept(self, T_map_base: np.ndarray, T_odom_base: np.ndarray) -> None:
+    def _accept(self, T_map_base: np.ndarray, T_odom_base: np.ndarray,
+                attitude: Optional[np.ndarray] = None) -> None:
         self.T_map_odom = T_map_base @ invert(T_odom_base)
         self._walked_since_accept_m = 0.0
+        self._accepted_attitude = (None if attitude is None
+                                   else (attitude.copy(), T_map_base.copy()))
 
     def fuse(self, fine_camera: np.ndarray, src_camera: np.ndarray, T_map_camera: np.ndarray,
              T_map_base: np.ndarray, stamp_s: float) -> None:

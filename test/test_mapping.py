@@ -339,6 +339,32 @@ def test_roll_pitch_priors(terrain):
     assert pose_error(u.T_map_base, T0)[1] < 0.05
 
 
+def test_imu_attitude_prior_follows_a_slip_the_odometry_missed(terrain):
+    # The body pivots 10 deg in yaw and pitches 3 deg in place (a foot slip); dead reckoning
+    # still says T0. The IMU's attitude change since the first capture turns the prior.
+    _, scene = terrain
+    slip = rpy_to_R(0.0, np.radians(3.0), np.radians(10.0))
+    truth = make_T(slip, T0[:3, 3])
+    cloud = cloud_at(scene, truth)
+    blind = first_mapper(scene, dataclasses.replace(CONFIG, use_imu_rotation_prior=False))
+    u = blind.update(cloud, T0, 1.0, attitude=slip)
+    assert not u.accepted or pose_error(u.T_map_base, truth)[1] > 5.0
+    cfg = dataclasses.replace(CONFIG, use_imu_rotation_prior=True)
+    m = mp.IcpMapper(cfg, T_BC)
+    assert m.update(cloud_at(scene, T0), T0, 0.0, attitude=np.eye(3)).accepted
+    snap = snapshot(m)
+    for bad in (np.full((3, 3), np.nan), 2.0 * np.eye(3)):
+        with pytest.raises(ValueError, match='attitude'):
+            m.update(cloud, T0, 1.0, attitude=bad)
+        assert_unchanged(m, snap)
+    u = m.update(cloud, T0, 1.0, attitude=slip)
+    assert u.accepted, u.reason
+    err_m, err_deg = pose_error(u.T_map_base, truth)
+    assert err_m < 2e-3 and err_deg < 0.2, (err_m, err_deg)
+    # the correction re-anchors dead reckoning on the turned pose
+    assert pose_error(m.T_map_odom @ T0, truth)[1] < 0.2
+
+
 def test_node_yaml_holds_valid_mapper_parameters():
     import yaml
     from pathlib import Path
