@@ -493,7 +493,7 @@ class FootstepPlanner:
         if not np.any(np.isfinite(cost)):
             return failed(STATUS_BAD_MAP, 'cost layer has no finite value')
         self.grid, self.cost = grid, cost
-        self._dev = None     # Shao's Dev(h) of the whole map, computed when first needed
+        self._dev = None     # (i0, j0, Dev(h) of the cells from there): see _area_flat
         self.allowed = candidate_mask(grid, self.cfg) & np.isfinite(cost)
         if self.cfg.max_unevenness > 0:
             k = self.cfg.map_safety_factor
@@ -540,11 +540,34 @@ class FootstepPlanner:
         h = self.grid[ELEVATION][ij[:, 0], ij[:, 1]]
         if not np.all(inside & np.isfinite(h)):
             return False
-        # Dev is a 3x3 stencil: taken once from the whole map
-        if self._dev is None:
-            self._dev = features.shao_dev(self.grid[ELEVATION])
-        fc = flatness_cost(h, ground_z, self._dev[ij[:, 0], ij[:, 1]])
+        fc = flatness_cost(h, ground_z, self._dev_at(ij))
         return bool(np.all(fc < self.cfg.trot_threshold_m))
+
+    #: half-width [cells] of the window of Shao's Dev computed at a time (the search areas of
+    #: one plan lie within a few tens of cells of each other)
+    _DEV_WINDOW = 40
+
+    def _dev_at(self, ij: np.ndarray) -> np.ndarray:
+        """Shao's Dev(h) at cells ``ij`` (inside the grid), from a cached window of the map
+        (a new window around them when they leave it): the whole map's would cost ~10 ms per
+        map, one area's bounding box a call per area."""
+        i0, j0 = ij.min(0)
+        i1, j1 = ij.max(0) + 1
+        if self._dev is not None:
+            a0, b0, dev = self._dev
+            if a0 <= i0 and b0 <= j0 and i1 <= a0 + dev.shape[0] and j1 <= b0 + dev.shape[1]:
+                return dev[ij[:, 0] - a0, ij[:, 1] - b0]
+        n = self.grid.shape
+        w = self._DEV_WINDOW
+        ci, cj = (i0 + i1) // 2, (j0 + j1) // 2
+        a0, b0 = max(min(i0, ci - w), 0), max(min(j0, cj - w), 0)
+        a1, b1 = min(max(i1, ci + w), n[0]), min(max(j1, cj + w), n[1])
+        # Dev is a 3x3 stencil: computed with a one-cell border, which is then dropped
+        p0, q0 = max(a0 - 1, 0), max(b0 - 1, 0)
+        dev = features.shao_dev(self.grid[ELEVATION][p0:a1 + 1, q0:b1 + 1])
+        dev = dev[a0 - p0:a0 - p0 + (a1 - a0), b0 - q0:b0 - q0 + (b1 - b0)]
+        self._dev = (a0, b0, dev)
+        return dev[ij[:, 0] - a0, ij[:, 1] - b0]
 
     def _to_map(self, u: np.ndarray, v: np.ndarray) -> np.ndarray:
         return self.origin + np.outer(u, self.hdir) + np.outer(v, self.ldir)

@@ -579,3 +579,20 @@ def test_plan_checked_falls_back_on_recovery_plans_the_executor_accepts():
     off = _planner(dataclasses.replace(cfg, recovery=False), _rocks(5))
     none = off.plan_checked(_pose(), goal, feet, refuse_normal, first_leg=fs.LH)
     assert not none.ok and 'the usual first steps refused' in none.status_text
+
+
+def test_flatness_dev_window_equals_the_whole_maps():
+    # _dev_at computes Shao's Dev on a window around the cells asked for: the values must be
+    # the whole map's, at the map's edges and next to unknown cells too.
+    rng = np.random.default_rng(0)
+    h = rng.normal(0.0, 0.01, (150, 120))
+    h[rng.random(h.shape) < 0.05] = np.nan
+    g = _grid(np.nan_to_num(h), cost=True)
+    g['elevation'] = h.astype(np.float32)
+    planner = _planner(fs.PlannerConfig(), g)
+    full = features.shao_dev(g['elevation'])
+    for _ in range(100):
+        c, d = rng.integers(0, 150), rng.integers(0, 120)
+        ij = np.c_[np.clip(c + rng.integers(-5, 6, 30), 0, 149),
+                   np.clip(d + rng.integers(-5, 6, 30), 0, 119)]
+        np.testing.assert_allclose(planner._dev_at(ij), full[ij[:, 0], ij[:, 1]], rtol=1e-12)
