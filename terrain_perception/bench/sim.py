@@ -240,9 +240,14 @@ def _rocks_seeds(n: int, start_x: float, goal_x: float, first: int = 0,
             'crossed': int(sum(crossed)),
             'falls': int(sum(r['fell'] for r in rs)),
             'advanced_m_mean': float(np.mean([r['advanced_m'] for r in rs])),
+            # simulated time of the walks that crossed: how fast, where it worked
+            'crossing_sim_s_median': float(np.median([r['sim_s'] for r, c in zip(rs, crossed)
+                                                      if c])) if any(crossed) else None,
             'seeds': n, 'first_seed': first}
+        t = summary[name]['crossing_sim_s_median']
         print(f'{name:<9} {marks}  | crossed {summary[name]["crossed"]}/{n}, falls '
-              f'{summary[name]["falls"]}, mean advance {summary[name]["advanced_m_mean"]:.2f} m')
+              f'{summary[name]["falls"]}, mean advance {summary[name]["advanced_m_mean"]:.2f} m'
+              + (f', crossing time median {t:.0f} s sim' if t is not None else ''))
     return {'rocks6_seeds': summary, 'rocks6_seed_rows': rows}
 
 
