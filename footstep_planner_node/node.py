@@ -10,7 +10,9 @@ Subscriptions:
     /goal_pose       geometry_msgs/PoseStamped (reliable): goal; without one, straight ahead
     /walking/stance  terrain_msgs/Stance (reliable, transient local): the controller's feet
                      after the step in progress and its next leg; plans start from there
-                     (without it: the nominal stance at the pose, first leg free)
+                     (without it: the nominal stance at the pose, first leg free); a step
+                     it refused (``last_error``) without stepping is not offered again from
+                     that stance for 10 s, even where the dry run of its checks accepts it
 Publications:
     /footstep_plan            terrain_msgs/FootstepPlan (reliable, transient local)
     /footstep_plan/markers    visualization_msgs/MarkerArray (reliable)
@@ -168,6 +170,9 @@ class FootstepPlannerNode(Node):
         self.map_problem: Optional[fs.FootstepPlan] = None
         self.T_map_base: Optional[np.ndarray] = None
         self.stance: Optional[tuple] = None     # (feet (4, 3) map, next leg, stamp [s])
+        self.stance_steps_done = 0
+        # Steps the controller refused although the dry run accepted them (see RefusedSteps)
+        self.refused = fs.RefusedSteps()
         self.walking_cfg = WalkingConfig()
         self.goal_xy: Optional[np.ndarray] = None
         self.imu: Optional[tuple] = None          # (stamp_s, quaternion xyzw)
@@ -233,6 +238,9 @@ class FootstepPlannerNode(Node):
                                                     self.node_cfg.cost_grid_max, stamp))
         self.replan(stamp)
 
+    def _now(self) -> float:
+        return self.get_clock().now().nanoseconds * 1e-9
+
     def _on_pose(self, msg: PoseStamped) -> None:
         try:
             self.T_map_base = pose_to_matrix(msg.pose)
@@ -246,6 +254,11 @@ class FootstepPlannerNode(Node):
             self.counters.bump('bad_stance', f'{exc}; ignored')
             return
         self.stance = (feet, next_leg, stamp_to_sec(msg.header.stamp))
+        self.stance_steps_done = int(msg.steps_done)
+        if self.refused.report(msg.steps_done, msg.last_error, self._now()):
+            self.counters.bump('step_refused_by_controller',
+                               f'the controller refused a step its dry run accepted '
+                               f'({msg.last_error[:200]}); not offered again from this stance')
 
     def _on_goal(self, msg: PoseStamped) -> None:
         p = msg.pose.position
@@ -332,13 +345,22 @@ class FootstepPlannerNode(Node):
                     abs(self.grid.stamp_s - self.stance[2]) <= self.node_cfg.stance_max_age_s:
                 feet, first_leg = self.stance[0], self.stance[1]
             if feet is not None and self.node_cfg.check_plans:
+                done, now = self.stance_steps_done, self._now()
+
                 def check(legs, positions):
+                    if len(legs):
+                        why = self.refused.refusal(done, legs[0], positions[0], now)
+                        if why is not None:
+                            return 0, f'the controller refused this step before: {why}'
                     return check_footsteps(self.robot, self.walking_cfg, feet, legs, positions,
                                            'walk', self.grid, T_body=self.T_map_base)
                 plan = self.planner.plan_checked(self.T_map_base, self.goal_xy, feet, check,
                                                  patches=patches, first_leg=first_leg)
                 if plan.check_note:
                     self.counters.bump('plan_changed_by_controller_check', plan.check_note)
+                if plan.ok and plan.footsteps:
+                    first = plan.footsteps[0]
+                    self.refused.offered(done, first.leg, first.position, now)
             else:
                 plan = self.planner.plan(self.T_map_base, self.goal_xy, feet=feet,
                                          first_leg=first_leg, patches=patches)

@@ -1122,3 +1122,58 @@ def plan_footsteps(grid: GridMap, robot: RobotModel, T_map_base: np.ndarray,
     if bad is not None:
         return bad
     return planner.plan(T_map_base, goal_xy, **kwargs)
+
+
+class RefusedSteps:
+    """Steps the executing controller refused although the planner's dry run of its checks
+    (:func:`terrain_perception.controller.check_footsteps`) accepted them.
+
+    The dry run cannot know everything the running controller does (the tilt its IMU
+    measured, the feet's rolling, its levelled stance heights), so a step can pass it and still
+    be refused; a planner that keeps offering that step livelocks (closed-loop run X: one RH
+    step refused 163 times in 50 s of simulated time). The planner records the first step of
+    each plan it sends together with the controller's step count (:meth:`offered`); a refusal
+    the controller then reports without having stepped (:meth:`report`) makes that step, and
+    any foothold of the same leg within ``tolerance_m`` of it, refused for the planner's checks
+    (:meth:`refusal`) until the controller completes a step or ``max_age_s`` passes (a
+    refusal can be transient: a measured tilt, a foot still settling)."""
+
+    def __init__(self, tolerance_m: float = 0.02, max_age_s: float = 10.0) -> None:
+        if not tolerance_m >= 0.0 or not max_age_s > 0.0:
+            raise ValueError(f'RefusedSteps: tolerance_m {tolerance_m} must be >= 0 and '
+                             f'max_age_s {max_age_s} > 0')
+        self.tolerance_m, self.max_age_s = float(tolerance_m), float(max_age_s)
+        self._offer: Optional[tuple] = None      # (steps_done, leg, position (3,), t)
+        self._refused: List[tuple] = []          # (steps_done, leg, position (3,), why, t)
+
+    def offered(self, steps_done: int, leg: int, position: np.ndarray, t: float) -> None:
+        """The planner sent a plan whose first step is ``leg`` to ``position`` at time ``t``,
+        planned from the stance after ``steps_done`` completed steps."""
+        self._offer = (int(steps_done), int(leg), np.asarray(position, dtype=float).copy(),
+                       float(t))
+
+    def report(self, steps_done: int, error: str, t: float) -> bool:
+        """The controller's state at time ``t``: its completed steps and its last refusal
+        (``''`` if none). Returns True when it records a refusal of the offered step."""
+        steps_done = int(steps_done)
+        self._refused = [r for r in self._refused if r[0] == steps_done]
+        o = self._offer
+        if (not error or error.startswith('plan is older') or o is None
+                or o[0] != steps_done or t < o[3]):
+            return False
+        if self.refusal(steps_done, o[1], o[2], t) is not None:
+            return False                         # already known
+        self._refused.append((steps_done, o[1], o[2], str(error), float(t)))
+        return True
+
+    def refusal(self, steps_done: int, leg: int, position: np.ndarray,
+                t: float) -> Optional[str]:
+        """Why the controller refused a step of ``leg`` near ``position`` from this stance, or
+        None if it did not (or the refusal is older than ``max_age_s``)."""
+        self._refused = [r for r in self._refused if t - r[4] <= self.max_age_s]
+        p = np.asarray(position, dtype=float)
+        for done, lg, q, why, _ in self._refused:
+            if done == int(steps_done) and lg == int(leg) and \
+                    np.linalg.norm(p[:2] - q[:2]) <= self.tolerance_m:
+                return why
+        return None

@@ -596,3 +596,27 @@ def test_flatness_dev_window_equals_the_whole_maps():
         ij = np.c_[np.clip(c + rng.integers(-5, 6, 30), 0, 149),
                    np.clip(d + rng.integers(-5, 6, 30), 0, 119)]
         np.testing.assert_allclose(planner._dev_at(ij), full[ij[:, 0], ij[:, 1]], rtol=1e-12)
+
+
+def test_refused_steps_remember_the_controllers_refusals_from_one_stance():
+    r = fs.RefusedSteps(tolerance_m=0.02, max_age_s=10.0)
+    p = np.array([0.10, -0.07, 0.0])
+    assert not r.report(5, 'refused before any plan', 1.0)         # nothing offered yet
+    r.offered(5, fs.RH, p, t=2.0)
+    assert not r.report(5, 'an earlier refusal', 1.5)             # older than the offer
+    assert not r.report(5, '', 2.5)                               # no refusal
+    assert not r.report(5, 'plan is older than plan_timeout_s=5.0 s', 2.5)  # not the step
+    assert not r.report(4, 'another stance', 2.5)
+    assert r.report(5, "body shift leaves the legs' reach", 3.0)
+    assert not r.report(5, "body shift leaves the legs' reach", 3.1)  # already known
+    assert r.refusal(5, fs.RH, p + [0.015, 0.0, 0.0], 4.0) == "body shift leaves the legs' reach"
+    assert r.refusal(5, fs.RH, p + [0.03, 0.0, 0.0], 4.0) is None   # another foothold
+    assert r.refusal(5, fs.LH, p, 4.0) is None                      # another leg
+    assert r.refusal(6, fs.RH, p, 4.0) is None                      # another stance
+    assert r.refusal(5, fs.RH, p, 13.5) is None                     # too old: tried again
+    r.offered(5, fs.RH, p, t=14.0)
+    assert r.report(5, 'refused again', 14.5)
+    assert not r.report(6, '', 15.0)                               # it stepped: forgotten
+    assert r.refusal(5, fs.RH, p, 15.0) is None
+    with pytest.raises(ValueError, match='max_age_s'):
+        fs.RefusedSteps(max_age_s=0.0)

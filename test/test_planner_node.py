@@ -175,6 +175,50 @@ def test_plans_start_from_the_controllers_stance(ros_context, executor):
     assert spin_until(executor, lambda: h.node.counters.counts.get('bad_stance', 0) > 0, 5.0)
     assert h.node.stance[1] == Footstep.LEG_RH                 # the good one is kept
 
+
+def test_a_step_the_controller_refused_is_not_offered_again(ros_context, executor):
+    # The dry run of the controller's checks cannot know everything the running controller
+    # does, so it can accept a step the controller then refuses; re-sending that step plan
+    # after plan was run X's 50 s livelock. After the refusal the plan from the same stance
+    # starts differently; once the controller has stepped, the memory is cleared.
+    h = Harness(ros_context, executor)
+    h.pose(_pose_T())
+    hh = np.zeros((150, 150))
+    hh[88:102, 75:90] = 0.03                                # walk gait (obstacle ahead)
+    pub = h.io.create_publisher(Stance, '/walking/stance', LATCHED_QOS)
+    feet = np.array(nominal_feet_world(ROBOT, _pose_T()), dtype=float)
+
+    def stance(done, error=''):
+        msg = Stance()
+        msg.header.frame_id = 'map'
+        msg.header.stamp.sec = 1001                         # the maps' time (stance_max_age_s)
+        msg.feet = [Point(x=float(p[0]), y=float(p[1]), z=float(p[2])) for p in feet]
+        msg.next_leg = Footstep.LEG_RH
+        msg.steps_done, msg.last_error = done, error
+        n = h.node.counters.counts.get('step_refused_by_controller', 0)
+        pub.publish(msg)
+        assert spin_until(executor, lambda: h.node.stance_steps_done == done
+                          and (not error or h.node.counters.counts.get(
+                              'step_refused_by_controller', 0) > n), 5.0)
+
+    def first(plan):
+        assert plan.status == FootstepPlan.STATUS_OK, plan.status_text
+        f = plan.footsteps[0]
+        return f.leg, np.array([f.position.x, f.position.y])
+
+    stance(5)
+    leg1, p1 = first(h.send_map(grid_to_msg(_grid(hh))))
+    assert leg1 == Footstep.LEG_RH
+    leg, p = first(h.send_map(grid_to_msg(_grid(hh))))      # deterministic: the same step
+    assert leg == leg1 and np.allclose(p, p1)
+    stance(5, "body shift leaves the legs' reach: pose 30 leg RH: target beyond the leg length")
+    leg, p = first(h.send_map(grid_to_msg(_grid(hh))))
+    assert leg != leg1 or np.linalg.norm(p - p1) > h.node.refused.tolerance_m, (leg, p, p1)
+    assert h.node.counters.counts.get('plan_changed_by_controller_check', 0) > 0
+    stance(6)                                               # it stepped: forgotten
+    leg, p = first(h.send_map(grid_to_msg(_grid(hh))))
+    assert leg == leg1 and np.allclose(p, p1)
+
 def test_bad_inputs_give_explanatory_empty_plans(ros_context, executor):
     h = Harness(ros_context, executor)
     flat = _grid(np.zeros((150, 150)))
