@@ -141,6 +141,13 @@ class PlannerConfig:
     nominal_weight_per_m2: float = param(
         20.0, "cost per square metre of distance from the stride rule's foothold (the search "
         'area centre): keeps legs from lagging into dead ends [1/m^2]', 0.0, 1e6)
+    shortfall_weight_per_m2: float = param(
+        0.0, "extra cost per square metre by which a foothold falls short of the stride "
+        "rule's along the walking direction (not beside it, not beyond it): on rocks the cell "
+        'next to a foot is often the cheapest, and a third of the steps in the loop are 1 cm '
+        'long, which holds every other leg back through the spread limit. 50 crosses faster '
+        '(ground-truth walks) but stretches the stance until the rearmost foot cannot swing '
+        '(closed-loop stalls), so it is off (0) by default [1/m^2]', 0.0, 1e6)
     patch_bonus: float = param(0.3, 'cost reduction factor for cells within a salient contact '
                                "patch's radius (0 = ignore patches)", 0.0, 1.0)
     beam_width: int = param(4, 'partial plans kept per step of the search', 1, 64)
@@ -974,8 +981,9 @@ class FootstepPlanner:
         dz = np.abs(pts[:, 2] - float(np.mean(state.feet[:, 2])))
         # Distance from the stride-rule foothold (the area centre, paper 002 Fig. 4).
         d2 = (u - centre) ** 2 + (v - self.nom_v[leg]) ** 2
+        short = np.maximum(centre - u, 0.0)
         J = omega * (np.maximum(cost, 0.0) + cfg.cost_offset + cfg.step_height_weight_per_m * dz
-                     + cfg.nominal_weight_per_m2 * d2)
+                     + cfg.nominal_weight_per_m2 * d2 + cfg.shortfall_weight_per_m2 * short ** 2)
         pidx = np.full(len(pts), -1)
         if self.patches is not None and cfg.patch_bonus > 0:
             pv, pr = self.patches

@@ -250,6 +250,33 @@ def test_planner_prefers_low_cost_cells_over_the_nominal_foothold():
     _check_plan_feasible(plan, cfg)
 
 
+@pytest.mark.parametrize('shortfall, elsewhere, long_strides',
+                         [(50.0, 0.1, True), (50.0, 0.5, False), (0.0, 0.1, False)])
+def test_stride_shortfall_weight_trades_progress_for_cost(shortfall, elsewhere, long_strides):
+    """On rough ground the cell next to a foot is often the cheapest (run U took a third of
+    its rock steps at the 1 cm minimum): with a shortfall weight of 50 a saving of 0.1 does not
+    buy a 5 cm shorter stride, but a saving of 0.5 still does; without it (the default) 0.1
+    does."""
+    g = _flat()
+    cfg = fs.PlannerConfig(trot_threshold_m=0.0,     # never "flat": the capped stride centre
+                           shortfall_weight_per_m2=shortfall)
+    feet = np.array(ROBOT.nominal_feet)
+    feet[:, 2] = 0.0
+    cost = np.full(g.shape, elsewhere, np.float32)
+    for x in np.unique(feet[:, 0]):                  # free cells 1-2 cm ahead of each foot
+        i0 = g.world_to_index(np.array([x + 0.01, 0.0]))[0]
+        cost[i0:i0 + 2, :] = 0.0
+    g['cost'] = cost
+    plan = _planner(cfg, g).plan(_pose(), np.array([0.6, 0.0]), feet=feet)
+    assert plan.ok and len(plan.footsteps) == 4, plan.status_text
+    dx = np.array([s.position[0] - feet[s.leg, 0] for s in plan.footsteps])
+    if long_strides:
+        assert np.all(dx >= 0.04), dx
+    else:
+        assert np.all(dx <= 0.025), dx
+    _check_plan_feasible(plan, cfg)
+
+
 def test_never_observed_cells_need_a_tight_upper_bound():
     cfg = fs.PlannerConfig()
     g = _rocks(5)
