@@ -51,7 +51,7 @@ from terrain_perception.patches import PatchConfig, PatchSet, find_patches, grav
 from terrain_perception.robot_model import available_robots, load_robot_model
 from terrain_ros.conversions import (cloud_to_xyz, make_header, matrix_to_pose, msg_to_grid,
                                      msg_to_stance, pose_to_matrix, stamp_to_sec)
-from terrain_ros.node import Counters, run_node
+from terrain_ros.node import Counters, now_s, run_node
 from terrain_ros.params import declare_config
 from terrain_ros.qos import LATCHED_QOS, RELIABLE_QOS, SENSOR_QOS
 
@@ -239,7 +239,7 @@ class FootstepPlannerNode(Node):
         self.replan(stamp)
 
     def _now(self) -> float:
-        return self.get_clock().now().nanoseconds * 1e-9
+        return now_s(self)
 
     def _on_pose(self, msg: PoseStamped) -> None:
         try:

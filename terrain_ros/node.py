@@ -15,6 +15,11 @@ from terrain_ros.env import apply_safe_defaults
 from terrain_ros.qos import RELIABLE_QOS
 
 
+def now_s(node: Node) -> float:
+    """The node's clock (simulated time with ``use_sim_time``) in seconds."""
+    return node.get_clock().now().nanoseconds * 1e-9
+
+
 def run_node(node_cls: Type[Node], args=None, **kwargs) -> int:
     """Create ``node_cls`` and spin it until Ctrl-C / shutdown; the Jazzy idiom.
 

@@ -39,6 +39,17 @@ def _grid(h, stamp=1.0, cost=True):
     return g
 
 
+def _stance_msg(feet, next_leg, sec, steps_done=0, error=''):
+    """A terrain_msgs/Stance in ``map`` with ``feet`` (4, 3) stamped ``sec``."""
+    msg = Stance()
+    msg.header.frame_id = 'map'
+    msg.header.stamp.sec = sec
+    msg.feet = [Point(x=float(p[0]), y=float(p[1]), z=float(p[2])) for p in feet]
+    msg.next_leg = next_leg
+    msg.steps_done, msg.last_error = steps_done, error
+    return msg
+
+
 def _pose_T(x=0.0, y=0.0):
     T = np.eye(4)
     T[:3, 3] = [x, y, ROBOT.standing_height_m]
@@ -155,12 +166,7 @@ def test_plans_start_from_the_controllers_stance(ros_context, executor):
     pub = h.io.create_publisher(Stance, '/walking/stance', LATCHED_QOS)
     feet = np.array(nominal_feet_world(ROBOT, _pose_T()), dtype=float)
     feet[0, 0] += 0.03                                      # LF already a step ahead
-    msg = Stance()
-    msg.header.frame_id = 'map'
-    msg.header.stamp.sec = 1001
-    msg.feet = [Point(x=float(p[0]), y=float(p[1]), z=float(p[2])) for p in feet]
-    msg.next_leg = Footstep.LEG_RH
-    pub.publish(msg)
+    pub.publish(_stance_msg(feet, Footstep.LEG_RH, 1001))
     assert spin_until(executor, lambda: h.node.stance is not None, 5.0)
     plan = h.send_map(grid_to_msg(_grid(hh)), sec=1001)
     assert plan.status == FootstepPlan.STATUS_OK, plan.status_text
@@ -189,14 +195,9 @@ def test_a_step_the_controller_refused_is_not_offered_again(ros_context, executo
     feet = np.array(nominal_feet_world(ROBOT, _pose_T()), dtype=float)
 
     def stance(done, error=''):
-        msg = Stance()
-        msg.header.frame_id = 'map'
-        msg.header.stamp.sec = 1001                         # the maps' time (stance_max_age_s)
-        msg.feet = [Point(x=float(p[0]), y=float(p[1]), z=float(p[2])) for p in feet]
-        msg.next_leg = Footstep.LEG_RH
-        msg.steps_done, msg.last_error = done, error
         n = h.node.counters.counts.get('step_refused_by_controller', 0)
-        pub.publish(msg)
+        # stamped at the maps' time (stance_max_age_s)
+        pub.publish(_stance_msg(feet, Footstep.LEG_RH, 1001, done, error))
         assert spin_until(executor, lambda: h.node.stance_steps_done == done
                           and (not error or h.node.counters.counts.get(
                               'step_refused_by_controller', 0) > n), 5.0)

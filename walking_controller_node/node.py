@@ -50,7 +50,7 @@ from terrain_perception.robot_model import load_robot_model
 from terrain_perception.transforms import make_T, quat_to_R, rot_z, transform_points
 from terrain_ros.conversions import (JointStateError, joint_state_to_arrays, make_header,
                                      msg_to_grid, odometry, pose_to_matrix, sec_to_stamp)
-from terrain_ros.node import Counters, run_node
+from terrain_ros.node import Counters, now_s, run_node
 from terrain_ros.params import declare_config
 from terrain_ros.qos import LATCHED_QOS, RELIABLE_QOS, SENSOR_QOS
 
@@ -120,7 +120,7 @@ class WalkingControllerNode(Node):
         self.controller.config = cfg
 
     def _now(self) -> float:
-        return self.get_clock().now().nanoseconds * 1e-9
+        return now_s(self)
 
     # ------------------------------------------------------------------ inputs
     def _on_joint_state(self, msg: JointState) -> None:
