@@ -133,6 +133,12 @@ class PlannerConfig:
         'foot on its side, as a share of the nominal one (the hip spacing): a hind leg that '
         'catches up with a blocked front leg leaves a support polygon too short to balance on '
         '(0 = no limit) [-]', 0.0, 1.0)
+    max_stance_length: float = param(
+        1.3, 'longest distance along the walking direction between a front foot and the hind '
+        'foot on its side, as a share of the nominal one: a front foot far ahead of a lagging '
+        'hind foot leaves no body shift that keeps the hind foot in reach while the COG is over '
+        'the other three (the stretched-stance stalls of the shortfall weight; 0 = no limit) '
+        '[-]', 0.0, 10.0)
     min_stance_width: float = param(
         0.45, 'narrowest distance across the walking direction between a left foot and the right '
         'foot of its pair (front or hind), as a share of the nominal one: legs stepping around '
@@ -142,12 +148,13 @@ class PlannerConfig:
         20.0, "cost per square metre of distance from the stride rule's foothold (the search "
         'area centre): keeps legs from lagging into dead ends [1/m^2]', 0.0, 1e6)
     shortfall_weight_per_m2: float = param(
-        0.0, "extra cost per square metre by which a foothold falls short of the stride "
+        50.0, "extra cost per square metre by which a foothold falls short of the stride "
         "rule's along the walking direction (not beside it, not beyond it): on rocks the cell "
-        'next to a foot is often the cheapest, and a third of the steps in the loop are 1 cm '
-        'long, which holds every other leg back through the spread limit. 50 crosses faster '
-        '(ground-truth walks) but stretches the stance until the rearmost foot cannot swing '
-        '(closed-loop stalls), so it is off (0) by default [1/m^2]', 0.0, 1e6)
+        'next to a foot is often the cheapest, and a third of the steps in the loop were 1 cm '
+        'long, which held every other leg back through the spread limit. With '
+        'max_stance_length 1.3 the ground-truth walks cross 11 of 16 seeds (defaults before: '
+        '6), about 25 % faster; alone it stretches the stance until the rearmost foot cannot '
+        'swing (0 = off) [1/m^2]', 0.0, 1e6)
     patch_bonus: float = param(0.3, 'cost reduction factor for cells within a salient contact '
                                "patch's radius (0 = ignore patches)", 0.0, 1.0)
     beam_width: int = param(4, 'partial plans kept per step of the search', 1, 64)
@@ -936,6 +943,14 @@ class FootstepPlanner:
             ok &= (u <= fu[mate] - gap) if leg in (LH, RH) else (u >= fu[mate] + gap)
             if not np.any(ok):
                 return None, (f'no cell of its search area keeps the stance {gap:.3f} m long '
+                              f'(the {LEG_NAMES[mate]} foot)')
+        if cfg.max_stance_length > 0:
+            fu, _ = self._uv(state.feet)
+            mate = _SAME_SIDE[leg]
+            span = cfg.max_stance_length * abs(self.nom_u[mate] - self.nom_u[leg])
+            ok &= (u >= fu[mate] - span) if leg in (LH, RH) else (u <= fu[mate] + span)
+            if not np.any(ok):
+                return None, (f'no cell of its search area keeps the stance within {span:.3f} m '
                               f'(the {LEG_NAMES[mate]} foot)')
         if cfg.min_stance_width > 0:
             # Keep the stance wide: a left foot stays left of its pair's right foot (and a right

@@ -457,6 +457,31 @@ def test_a_lagging_front_foot_keeps_its_hind_foot_a_stance_length_behind():
     assert gaps[0.0] < 0.65 * spacing - 0.02
 
 
+
+def test_a_front_foot_leads_its_hind_foot_by_at_most_the_stance_length():
+    """RH lags 5 cm behind its nominal place (it was blocked): RF's next step may lead it by
+    at most max_stance_length of the nominal front-hind spacing, since a longer stance leaves
+    no body shift that keeps RH in reach while the COG is over the other three feet. Without
+    the limit (0; the leg-spread limit is off in both) RF steps to its stride-rule place and
+    the stance gets longer than that: the test can fail."""
+    nom = np.array(ROBOT.nominal_feet)
+    spacing = nom[fs.RF, 0] - nom[fs.RH, 0]
+    lead = {}
+    for msl in (1.3, 0.0):
+        cfg = fs.PlannerConfig(trot_threshold_m=0.0, horizon_steps=1, max_stance_length=msl,
+                               max_leg_spread_m=0.0, recovery=False)
+        planner = fs.FootstepPlanner(ROBOT, cfg)
+        assert planner.set_map(_flat()) is None
+        feet = nom.copy()
+        feet[:, 2] = 0.0
+        feet[fs.RH, 0] -= 0.05
+        plan = planner.plan(_pose(), np.array([0.6, 0.0]), feet=feet, first_leg=fs.RF)
+        assert plan.ok and plan.footsteps[0].leg == fs.RF, plan.status_text
+        lead[msl] = plan.footsteps[0].position[0] - feet[fs.RH, 0]
+    assert lead[1.3] <= 1.3 * spacing + 1e-9
+    assert lead[1.3] > feet[fs.RF, 0] - feet[fs.RH, 0]        # still a step forward
+    assert lead[0.0] > 1.3 * spacing + 0.02
+
 def _blocked_lane_scene():
     """A 5 cm roof-shaped block in RF's lane (+-4.5 cm of its nominal line) from 5 cm to 30 cm
     ahead of the foot, on flat ground: ``(grid, block mask, nominal feet, stance on the
