@@ -656,6 +656,8 @@ def _node_reasons(nodes: Dict[str, dict]) -> Dict[str, str]:
 
 
 def _jsonable(v):
+    if isinstance(v, np.bool_):
+        return bool(v)
     if isinstance(v, (np.integer,)):
         return int(v)
     if isinstance(v, (np.floating,)):

@@ -67,3 +67,19 @@ def test_summary_reports_the_heading_error_a_slip_leaves():
     # wrapped: 179 deg against 0 is 179 deg off, not 181
     assert s['max_heading_error_deg'] == pytest.approx(179.0, abs=1e-6)
     assert 'heading 11.0 deg (max 179.0 deg)' in format_summary(s)
+
+
+def test_the_summary_of_a_run_that_crossed_is_written_as_json():
+    """The first closed-loop crossing (run AB) lost its report: a numpy bool in the summary
+    was not JSON-serialisable. Any flag numpy computes must be written as a JSON boolean."""
+    import json
+    from terrain_ros.report import _jsonable
+    d = RunData(CourseInfo('rocks-6cm', 0, 0.4, 1.0, 1.75, 2.15), 'littledog')
+    t = np.arange(0.0, 20.0, 0.5)
+    d.gt_t = t
+    d.gt_T = np.stack([_pose(0.4 + 0.1 * k, 0.0, 0.0) for k in range(len(t))])
+    d.dr_t, d.dr_T = t, d.gt_T.copy()
+    s = compute_summary(d)
+    out = json.loads(json.dumps(s, default=_jsonable))
+    assert out['crossed'] is True and out['falls'] == 0
+    assert json.loads(json.dumps({'flag': np.bool_(False)}, default=_jsonable)) == {'flag': False}
