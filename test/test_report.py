@@ -70,8 +70,9 @@ def test_summary_reports_the_heading_error_a_slip_leaves():
 
 
 def test_the_summary_of_a_run_that_crossed_is_written_as_json():
-    """The first closed-loop crossing (run AB) lost its report: a numpy bool in the summary
-    was not JSON-serialisable. Any flag numpy computes must be written as a JSON boolean."""
+    """Run AB lost its report: a numpy bool in the summary (crossed, computed from the first
+    crossing and the first fall) was not JSON-serialisable. Any flag numpy computes must be
+    written as a JSON boolean."""
     import json
     from terrain_ros.report import _jsonable
     d = RunData(CourseInfo('rocks-6cm', 0, 0.4, 1.0, 1.75, 2.15), 'littledog')
