@@ -924,38 +924,38 @@ class FootstepPlanner:
         ok &= np.hypot(*(xy - state.feet[leg, :2]).T) >= 0.75 * g.resolution_m
         if not np.any(ok):
             return None, 'no observed, finite-cost cell in its search area'
+        fu, fv = self._uv(state.feet)        # the stance along / across the walking line
         if cfg.max_leg_spread_m > 0:
             # No foot further ahead of its nominal place than the rearmost other foot by more
             # than the spread: a foot left behind (an obstacle in its area) holds the others
             # back instead of ending up out of reach once the COG has moved on.
-            fu, _ = self._uv(state.feet)
             lag = np.delete(fu - self.nom_u, leg)
             ok &= u - self.nom_u[leg] <= lag.min() + cfg.max_leg_spread_m
             if not np.any(ok):
                 return None, (f'its search area {cfg.max_leg_spread_m} m or more ahead of the '
                               'rearmost other foot')
+        # The stance's length along the walking line, front foot to the hind foot on its side,
+        # as a share of the nominal spacing: at least min_stance_length (a hind foot closing up
+        # on a blocked front foot leaves a support polygon too short), at most
+        # max_stance_length (a hind foot left far behind cannot swing within reach).
+        mate = _SAME_SIDE[leg]
+        spacing = abs(self.nom_u[mate] - self.nom_u[leg])
+        hind = leg in (LH, RH)
         if cfg.min_stance_length > 0:
-            # Keep the stance long: a hind foot stays behind its side's front foot (and a front
-            # foot ahead of its hind foot) by a share of the nominal spacing.
-            fu, _ = self._uv(state.feet)
-            mate = _SAME_SIDE[leg]
-            gap = cfg.min_stance_length * abs(self.nom_u[mate] - self.nom_u[leg])
-            ok &= (u <= fu[mate] - gap) if leg in (LH, RH) else (u >= fu[mate] + gap)
+            gap = cfg.min_stance_length * spacing
+            ok &= (u <= fu[mate] - gap) if hind else (u >= fu[mate] + gap)
             if not np.any(ok):
                 return None, (f'no cell of its search area keeps the stance {gap:.3f} m long '
                               f'(the {LEG_NAMES[mate]} foot)')
         if cfg.max_stance_length > 0:
-            fu, _ = self._uv(state.feet)
-            mate = _SAME_SIDE[leg]
-            span = cfg.max_stance_length * abs(self.nom_u[mate] - self.nom_u[leg])
-            ok &= (u >= fu[mate] - span) if leg in (LH, RH) else (u <= fu[mate] + span)
+            span = cfg.max_stance_length * spacing
+            ok &= (u >= fu[mate] - span) if hind else (u <= fu[mate] + span)
             if not np.any(ok):
                 return None, (f'no cell of its search area keeps the stance within {span:.3f} m '
                               f'(the {LEG_NAMES[mate]} foot)')
         if cfg.min_stance_width > 0:
             # Keep the stance wide: a left foot stays left of its pair's right foot (and a right
             # foot right of its left one) by a share of the nominal width.
-            _, fv = self._uv(state.feet)
             mate = _ACROSS[leg]
             gap = cfg.min_stance_width * abs(self.nom_v[mate] - self.nom_v[leg])
             ok &= (v >= fv[mate] + gap) if self.nom_v[leg] > self.nom_v[mate] else \

@@ -434,6 +434,22 @@ def test_a_profile_without_the_trot_walks_on_flat_ground():
     assert trotting.ok and trotting.gait == fs.GAIT_TROT
 
 
+def _first_step_with_a_lagging_foot(lagging: int, lag_m: float, first_leg: int, **cfg_kw):
+    """On flat ground, from the nominal stance with ``lagging`` ``lag_m`` behind its place (it
+    was blocked), the first step of a one-step plan for ``first_leg`` (the leg-spread limit
+    off): ``(feet, foothold)``."""
+    cfg = fs.PlannerConfig(trot_threshold_m=0.0, horizon_steps=1, max_leg_spread_m=0.0,
+                           recovery=False, **cfg_kw)
+    planner = fs.FootstepPlanner(ROBOT, cfg)
+    assert planner.set_map(_flat()) is None
+    feet = np.array(ROBOT.nominal_feet)
+    feet[:, 2] = 0.0
+    feet[lagging, 0] -= lag_m
+    plan = planner.plan(_pose(), np.array([0.6, 0.0]), feet=feet, first_leg=first_leg)
+    assert plan.ok and plan.footsteps[0].leg == first_leg, plan.status_text
+    return feet, np.asarray(plan.footsteps[0].position)
+
+
 def test_a_lagging_front_foot_keeps_its_hind_foot_a_stance_length_behind():
     """LF lags 6 cm behind its nominal place (it was blocked): LH's next step may close up on
     it only to min_stance_length of the nominal front-hind spacing. Without the constraint (0;
@@ -442,20 +458,11 @@ def test_a_lagging_front_foot_keeps_its_hind_foot_a_stance_length_behind():
     nom = np.array(ROBOT.nominal_feet)
     spacing = nom[fs.LF, 0] - nom[fs.LH, 0]
     gaps = {}
-    for msl in (0.65, 0.0):   # the default is 0 (off): see config/footstep_planner.yaml
-        cfg = fs.PlannerConfig(trot_threshold_m=0.0, horizon_steps=1, min_stance_length=msl,
-                               max_leg_spread_m=0.0, recovery=False)
-        planner = fs.FootstepPlanner(ROBOT, cfg)
-        assert planner.set_map(_flat()) is None
-        feet = nom.copy()
-        feet[:, 2] = 0.0
-        feet[fs.LF, 0] -= 0.06
-        plan = planner.plan(_pose(), np.array([0.6, 0.0]), feet=feet, first_leg=fs.LH)
-        assert plan.ok and plan.footsteps[0].leg == fs.LH, plan.status_text
-        gaps[msl] = feet[fs.LF, 0] - plan.footsteps[0].position[0]
+    for msl in (0.65, 0.0):   # the default is 0.5: see config/footstep_planner.yaml
+        feet, step = _first_step_with_a_lagging_foot(fs.LF, 0.06, fs.LH, min_stance_length=msl)
+        gaps[msl] = feet[fs.LF, 0] - step[0]
     assert gaps[0.65] >= 0.65 * spacing - 1e-9
     assert gaps[0.0] < 0.65 * spacing - 0.02
-
 
 
 def test_a_front_foot_leads_its_hind_foot_by_at_most_the_stance_length():
@@ -468,19 +475,12 @@ def test_a_front_foot_leads_its_hind_foot_by_at_most_the_stance_length():
     spacing = nom[fs.RF, 0] - nom[fs.RH, 0]
     lead = {}
     for msl in (1.3, 0.0):
-        cfg = fs.PlannerConfig(trot_threshold_m=0.0, horizon_steps=1, max_stance_length=msl,
-                               max_leg_spread_m=0.0, recovery=False)
-        planner = fs.FootstepPlanner(ROBOT, cfg)
-        assert planner.set_map(_flat()) is None
-        feet = nom.copy()
-        feet[:, 2] = 0.0
-        feet[fs.RH, 0] -= 0.05
-        plan = planner.plan(_pose(), np.array([0.6, 0.0]), feet=feet, first_leg=fs.RF)
-        assert plan.ok and plan.footsteps[0].leg == fs.RF, plan.status_text
-        lead[msl] = plan.footsteps[0].position[0] - feet[fs.RH, 0]
+        feet, step = _first_step_with_a_lagging_foot(fs.RH, 0.05, fs.RF, max_stance_length=msl)
+        lead[msl] = step[0] - feet[fs.RH, 0]
     assert lead[1.3] <= 1.3 * spacing + 1e-9
     assert lead[1.3] > feet[fs.RF, 0] - feet[fs.RH, 0]        # still a step forward
     assert lead[0.0] > 1.3 * spacing + 0.02
+
 
 def _blocked_lane_scene():
     """A 5 cm roof-shaped block in RF's lane (+-4.5 cm of its nominal line) from 5 cm to 30 cm

@@ -156,15 +156,22 @@ def test_map_pose_goal_give_the_core_plan_and_a_cost_grid(ros_context, executor)
 
 
 
-def test_plans_start_from_the_controllers_stance(ros_context, executor):
-    # The controller says where its feet will stand and which leg is next: the plan starts
-    # there (not from the nominal stance), and a malformed stance is refused and counted.
+def _stance_scene(ros_context, executor):
+    """A planner node at the pose with an obstacle ahead (walk gait), a publisher of the
+    controller's stance and the nominal feet there: ``(harness, heights, publisher, feet)``."""
     h = Harness(ros_context, executor)
     h.pose(_pose_T())
     hh = np.zeros((150, 150))
     hh[88:102, 75:90] = 0.03                                # walk gait (obstacle ahead)
     pub = h.io.create_publisher(Stance, '/walking/stance', LATCHED_QOS)
     feet = np.array(nominal_feet_world(ROBOT, _pose_T()), dtype=float)
+    return h, hh, pub, feet
+
+
+def test_plans_start_from_the_controllers_stance(ros_context, executor):
+    # The controller says where its feet will stand and which leg is next: the plan starts
+    # there (not from the nominal stance), and a malformed stance is refused and counted.
+    h, hh, pub, feet = _stance_scene(ros_context, executor)
     feet[0, 0] += 0.03                                      # LF already a step ahead
     pub.publish(_stance_msg(feet, Footstep.LEG_RH, 1001))
     assert spin_until(executor, lambda: h.node.stance is not None, 5.0)
@@ -187,12 +194,7 @@ def test_a_step_the_controller_refused_is_not_offered_again(ros_context, executo
     # does, so it can accept a step the controller then refuses; re-sending that step plan
     # after plan was run X's 50 s livelock. After the refusal the plan from the same stance
     # starts differently; once the controller has stepped, the memory is cleared.
-    h = Harness(ros_context, executor)
-    h.pose(_pose_T())
-    hh = np.zeros((150, 150))
-    hh[88:102, 75:90] = 0.03                                # walk gait (obstacle ahead)
-    pub = h.io.create_publisher(Stance, '/walking/stance', LATCHED_QOS)
-    feet = np.array(nominal_feet_world(ROBOT, _pose_T()), dtype=float)
+    h, hh, pub, feet = _stance_scene(ros_context, executor)
 
     def stance(done, error=''):
         n = h.node.counters.counts.get('step_refused_by_controller', 0)
@@ -219,6 +221,7 @@ def test_a_step_the_controller_refused_is_not_offered_again(ros_context, executo
     stance(6)                                               # it stepped: forgotten
     leg, p = first(h.send_map(grid_to_msg(_grid(hh))))
     assert leg == leg1 and np.allclose(p, p1)
+
 
 def test_bad_inputs_give_explanatory_empty_plans(ros_context, executor):
     h = Harness(ros_context, executor)
