@@ -131,6 +131,26 @@ def count_falls(t: np.ndarray, fallen: np.ndarray, min_duration_s: float = 0.5) 
     return n
 
 
+CROSS_SETTLE_S = 1.0
+
+
+def crossing_index(t: np.ndarray, x: np.ndarray, fallen: np.ndarray, finish_x: float,
+                   settle_s: float = CROSS_SETTLE_S) -> Optional[int]:
+    """Index of the sample at which the robot crossed, or None.
+
+    Crossed: the true x reached ``finish_x`` and the robot had not fallen before then nor
+    within ``settle_s`` after. A robot that topples over the line (run AB: carried past the
+    finish by its fall, tilted 140 deg) has not crossed, even though its first fallen sample
+    comes after its first sample past the finish."""
+    past = np.nonzero(np.asarray(x) >= finish_x)[0]
+    if not len(past):
+        return None
+    k = int(past[0])
+    if np.any(np.asarray(fallen)[np.asarray(t) <= t[k] + settle_s]):
+        return None
+    return k
+
+
 def interp_poses(t_src: np.ndarray, T_src: np.ndarray, t: np.ndarray) -> np.ndarray:
     """Nearest-stamp lookup of poses (sources sampled densely enough for evaluation)."""
     if len(t_src) == 0:
@@ -300,10 +320,8 @@ def compute_summary(d: RunData, model=None, cost_cfg: CostConfig = CostConfig())
         x = d.gt_T[:, 0, 3]
         fallen = fall_mask(d.gt_T, d.true_terrain, body)
         falls = count_falls(d.gt_t, fallen)
-        crossed_k = np.nonzero(x >= c.finish_x_m)[0]
-        first_fall = np.nonzero(fallen)[0]
-        crossed = bool(len(crossed_k)) and (not len(first_fall)
-                                            or crossed_k[0] < first_fall[0])
+        k_cross = crossing_index(d.gt_t, x, fallen, c.finish_x_m)
+        crossed = k_cross is not None
         s['crossed'] = crossed
         s['falls'] = falls
         # From where the robot really started (a replayed bag may start anywhere).
@@ -313,7 +331,7 @@ def compute_summary(d: RunData, model=None, cost_cfg: CostConfig = CostConfig())
         s['distance_to_cross_m'] = round(c.finish_x_m - float(x[0]), 4)
         path = np.linalg.norm(np.diff(d.gt_T[:, :3, 3], axis=0), axis=1).sum()
         s['path_length_m'] = round(float(path), 4)
-        s['time_to_cross_s'] = (round(float(d.gt_t[crossed_k[0]] - d.gt_t[0]), 3)
+        s['time_to_cross_s'] = (round(float(d.gt_t[k_cross] - d.gt_t[0]), 3)
                                 if crossed else None)
         if not crossed:
             missing['time_to_cross_s'] = 'did not cross'

@@ -84,3 +84,83 @@ def test_the_summary_of_a_run_that_crossed_is_written_as_json():
     out = json.loads(json.dumps(s, default=_jsonable))
     assert out['crossed'] is True and out['falls'] == 0
     assert json.loads(json.dumps({'flag': np.bool_(False)}, default=_jsonable)) == {'flag': False}
+
+
+def _pitched(x, tilt_deg):
+    """Base at (x, 0, 0.15), pitched forward by ``tilt_deg``."""
+    c, s_ = np.cos(np.radians(tilt_deg)), np.sin(np.radians(tilt_deg))
+    T = np.eye(4)
+    T[:3, :3] = [[c, 0.0, s_], [0.0, 1.0, 0.0], [-s_, 0.0, c]]
+    T[:3, 3] = x, 0.0, 0.15
+    return T
+
+
+# The last 0.7 s of closed-loop run AB (true base x [m] and tilt [deg], from its bag): the
+# robot stood 5 cm short of the 2.15 m finish, toppled, and the fall carried the base past
+# the line. Then it lies there (tilt 140 deg).
+AB_TAIL = [(155.13, 2.044, 7.8), (155.33, 2.060, 20.8), (155.53, 2.078, 38.3),
+           (155.58, 2.088, 45.7), (155.63, 2.101, 55.8), (155.68, 2.117, 69.6),
+           (155.73, 2.135, 88.7), (155.78, 2.144, 113.5), (155.83, 2.160, 139.5)]
+
+
+def _walk(samples):
+    from terrain_ros.report import fall_mask
+    t = np.array([s[0] for s in samples])
+    T = np.stack([_pitched(x, a) for _, x, a in samples])
+    return t, T, fall_mask(T, None, np.array([0.24, 0.10, 0.06]))
+
+
+def _live_end(t, T, fallen, finish_x=2.15):
+    from terrain_ros.tools.demo import WalkEnd
+    rule = WalkEnd(finish_x, stall_s=60.0)
+    for tk, Tk, fk in zip(t, T, fallen):
+        reason = rule.update(float(tk), float(Tk[0, 3]), bool(fk))
+        if reason:
+            return reason, float(tk)
+    return None, None
+
+
+def test_a_robot_that_topples_over_the_finish_has_not_crossed():
+    """Run AB: the live monitor ended it as 'crossed' because it looked at x before the fall.
+    Both the live rule and the report must call it a fall."""
+    lying = [(155.83 + 0.05 * k, 2.16, 139.5) for k in range(1, 61)]
+    t, T, fallen = _walk(AB_TAIL + lying)
+    reason, t_end = _live_end(t, T, fallen)
+    assert reason == 'fell' and t_end == pytest.approx(155.63 + 2.0, abs=0.051)
+    d = RunData(CourseInfo('rocks-6cm', 0, 0.4, 1.0, 1.75, 2.15), 'littledog')
+    d.gt_t, d.gt_T = t, T
+    s = compute_summary(d)
+    assert s['crossed'] is False and s['falls'] == 1 and s['time_to_cross_s'] is None
+
+
+def test_a_robot_that_falls_just_after_the_finish_has_not_crossed():
+    """Past the line upright, then tipped over 0.5 s later: the first sample past the finish
+    comes before the first fallen one, which the report used to count as a crossing."""
+    walk = [(0.1 * k, 2.10 + 0.01 * k, 2.0) for k in range(10)]            # past 2.15 at 0.5 s
+    fall = [(1.0 + 0.1 * k, 2.20, 60.0 + 10.0 * k) for k in range(30)]
+    t, T, fallen = _walk(walk + fall)
+    assert _live_end(t, T, fallen)[0] == 'fell'
+    d = RunData(CourseInfo('rocks-6cm', 0, 0.4, 1.0, 1.75, 2.15), 'littledog')
+    d.gt_t, d.gt_T = t, T
+    assert compute_summary(d)['crossed'] is False
+
+
+def test_a_robot_upright_past_the_finish_crossed_when_it_reached_the_line():
+    walk = [(0.1 * k, 2.10 + 0.01 * k, 2.0) for k in range(30)]            # 2.15 at t = 0.5 s
+    t, T, fallen = _walk(walk)
+    reason, t_end = _live_end(t, T, fallen)
+    assert reason == 'crossed' and t_end == pytest.approx(1.5)
+    d = RunData(CourseInfo('rocks-6cm', 0, 0.4, 1.0, 1.75, 2.15), 'littledog')
+    d.gt_t, d.gt_T = t, T
+    s = compute_summary(d)
+    assert s['crossed'] is True and s['time_to_cross_s'] == pytest.approx(0.5)
+
+
+def test_the_live_rule_ends_a_walk_that_makes_no_progress():
+    stuck = [(0.5 * k, 1.20 + (0.004 if k % 2 else 0.0), 3.0) for k in range(200)]
+    t, T, fallen = _walk(stuck)
+    from terrain_ros.tools.demo import WalkEnd
+    rule = WalkEnd(2.15, stall_s=60.0)
+    ends = [rule.update(float(a), float(b[0, 3]), bool(c)) for a, b, c in zip(t, T, fallen)]
+    k = next(i for i, e in enumerate(ends) if e)
+    assert ends[k].startswith('stalled') and t[k] == pytest.approx(60.0)

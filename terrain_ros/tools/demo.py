@@ -829,13 +829,53 @@ def _replay_topics(bag: Path) -> List[str]:
     return [t for t in REPLAY_TOPICS if t in have]
 
 
+class WalkEnd:
+    """When a closed-loop walk is over, from the true base x and the fall test over simulated
+    time: ``update`` returns ``'crossed'``, ``'fell'`` or a ``'stalled: ...'`` reason, or None
+    while the walk goes on.
+
+    Crossed means past ``finish_x`` and not fallen for ``settle_s`` after (the report's
+    ``crossing_index`` rule): a robot that topples over the line (run AB: tilted 140 deg,
+    carried past the finish by the fall) has not crossed. Fell means fallen for ``fall_s``; stalled means no 1 cm of progress for
+    ``stall_s``.
+    """
+
+    def __init__(self, finish_x: float, stall_s: float, settle_s: Optional[float] = None,
+                 fall_s: float = 2.0) -> None:
+        from terrain_ros.report import CROSS_SETTLE_S
+        settle_s = CROSS_SETTLE_S if settle_s is None else settle_s
+        self.finish_x, self.stall_s = float(finish_x), float(stall_s)
+        self.settle_s, self.fall_s = float(settle_s), float(fall_s)
+        self.best_x: Optional[float] = None
+        self.best_t = 0.0
+        self.fallen_since: Optional[float] = None
+        self.past_since: Optional[float] = None     # past the finish and upright since
+
+    def update(self, t: float, x: float, fallen: bool) -> Optional[str]:
+        if fallen:
+            self.past_since = None
+            if self.fallen_since is None:
+                self.fallen_since = t
+            return 'fell' if t - self.fallen_since >= self.fall_s else None
+        self.fallen_since = None
+        if x >= self.finish_x and self.past_since is None:
+            self.past_since = t
+        if self.past_since is not None:
+            return 'crossed' if t - self.past_since >= self.settle_s else None
+        if self.best_x is None or x > self.best_x + 0.01:
+            self.best_x, self.best_t = x, t
+        elif t - self.best_t >= self.stall_s:
+            return (f'stalled: no progress for {self.stall_s:.0f} s of simulated time '
+                    f'(x = {x:.3f} m)')
+        return None
+
+
 def _watch(args, monitor: Monitor, launcher: LoggedLauncher, launcher_thread, player, course,
            stop: _Stop, wall0: float) -> str:
     """Wait for an end condition, printing progress; returns why the run ended."""
     next_print = 0.0
-    fallen_since = None
     last_sim, last_sim_wall = None, time.monotonic()
-    best_x, best_t = None, 0.0
+    walk_end = WalkEnd(course.finish_x_m, args.stall_time)
     span = max(course.finish_x_m - course.start_x_m, 1e-6)
     while True:
         time.sleep(0.2)
@@ -863,20 +903,10 @@ def _watch(args, monitor: Monitor, launcher: LoggedLauncher, launcher_thread, pl
             return 'no /clock within 240 s of start (simulator did not come up)'
         T = monitor.gt_last
         x = T[0, 3] if T is not None else None
-        if x is not None and x >= course.finish_x_m and player is None:
-            return 'crossed'
         if x is not None and t is not None and player is None:
-            if best_x is None or x > best_x + 0.01:
-                best_x, best_t = x, t
-            elif t - best_t >= args.stall_time:
-                return (f'stalled: no progress for {args.stall_time:.0f} s of simulated time '
-                        f'(x = {x:.3f} m)')
-        if T is not None and monitor.fallen_now():
-            fallen_since = fallen_since if fallen_since is not None else (t or 0.0)
-            if (t or 0.0) - fallen_since >= 2.0:
-                return 'fell'
-        else:
-            fallen_since = None
+            reason = walk_end.update(t, x, monitor.fallen_now())
+            if reason:
+                return reason
         if not args.quiet and now >= next_print:
             next_print = now + args.progress_period
             rtf = ((t or 0.0) / (now - monitor.first_clock_wall)
