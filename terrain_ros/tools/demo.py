@@ -19,7 +19,7 @@ The simulator is capped at ``--real-time-factor`` simulated seconds per wall sec
 every node keeps up with the simulated clock on a small machine.
 
 The run ends when the robot has crossed (the true base is past the rough section by the hind
-legs' reach), has fallen, has not advanced 1 cm for ``--stall-time`` simulated seconds, the
+legs' reach, with no fall before nor within 1 s after: ``WalkEnd``), has fallen, has not advanced 1 cm for ``--stall-time`` simulated seconds, the
 simulated time reaches ``--max-sim-time``, the wall time reaches
 ``--timeout``, the simulator stops, or on Ctrl-C (a second Ctrl-C stops at once). Then the
 recorder gets SIGINT (so the bag is closed cleanly), the nodes are stopped, and the report is
