@@ -22,11 +22,11 @@ The run ends when the robot has crossed (the true base is past the rough section
 legs' reach, with no fall before nor within 1 s after: ``WalkEnd``), has fallen, has not
 advanced 1 cm for ``--stall-time`` simulated seconds, the simulated time reaches
 ``--max-sim-time``, the wall time reaches ``--timeout``, the simulator stops, or on Ctrl-C (a
-second Ctrl-C stops at once). Then the recorder gets SIGINT (so the bag is closed cleanly),
-the nodes are stopped, and the report is written from what the demo's monitor received. A
-node that is not installed, dies or keeps restarting is named in the summary; metrics and figures it would have fed are reported as
-missing, never filled in. Exit code: 0 when the report was written (with ``--strict``: 1 if
-the robot did not cross), 2 when the run could not start.
+second Ctrl-C stops at once). Then the recorder gets SIGINT (so the bag is closed cleanly), the
+nodes are stopped, and the report is written from what the demo's monitor received. A node that
+is not installed, dies or keeps restarting is named in the summary; metrics and figures it
+would have fed are reported as missing, never filled in. Exit code: 0 when the report was
+written (with ``--strict``: 1 if the robot did not cross), 2 when the run could not start.
 
 ``--replay BAG`` instead plays a recorded bag (with its ``/clock``) through the perception and
 planning nodes of ``config/launch/replay.yaml`` and writes the same report.
