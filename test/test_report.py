@@ -120,6 +120,13 @@ def _live_end(t, T, fallen, finish_x=2.15):
     return None, None
 
 
+def _summary(t, T):
+    """The report's summary of a run whose true poses are ``T`` at times ``t``."""
+    d = RunData(CourseInfo('rocks-6cm', 0, 0.4, 1.0, 1.75, 2.15), 'littledog')
+    d.gt_t, d.gt_T = t, T
+    return compute_summary(d)
+
+
 def test_a_robot_that_topples_over_the_finish_has_not_crossed():
     """Run AB: the live monitor ended it as 'crossed' because it looked at x before the fall.
     Both the live rule and the report must call it a fall."""
@@ -127,9 +134,7 @@ def test_a_robot_that_topples_over_the_finish_has_not_crossed():
     t, T, fallen = _walk(AB_TAIL + lying)
     reason, t_end = _live_end(t, T, fallen)
     assert reason == 'fell' and t_end == pytest.approx(155.63 + 2.0, abs=0.051)
-    d = RunData(CourseInfo('rocks-6cm', 0, 0.4, 1.0, 1.75, 2.15), 'littledog')
-    d.gt_t, d.gt_T = t, T
-    s = compute_summary(d)
+    s = _summary(t, T)
     assert s['crossed'] is False and s['falls'] == 1 and s['time_to_cross_s'] is None
 
 
@@ -140,9 +145,7 @@ def test_a_robot_that_falls_just_after_the_finish_has_not_crossed():
     fall = [(1.0 + 0.1 * k, 2.20, 60.0 + 10.0 * k) for k in range(30)]
     t, T, fallen = _walk(walk + fall)
     assert _live_end(t, T, fallen)[0] == 'fell'
-    d = RunData(CourseInfo('rocks-6cm', 0, 0.4, 1.0, 1.75, 2.15), 'littledog')
-    d.gt_t, d.gt_T = t, T
-    assert compute_summary(d)['crossed'] is False
+    assert _summary(t, T)['crossed'] is False
 
 
 def test_a_robot_upright_past_the_finish_crossed_when_it_reached_the_line():
@@ -150,17 +153,11 @@ def test_a_robot_upright_past_the_finish_crossed_when_it_reached_the_line():
     t, T, fallen = _walk(walk)
     reason, t_end = _live_end(t, T, fallen)
     assert reason == 'crossed' and t_end == pytest.approx(1.5)
-    d = RunData(CourseInfo('rocks-6cm', 0, 0.4, 1.0, 1.75, 2.15), 'littledog')
-    d.gt_t, d.gt_T = t, T
-    s = compute_summary(d)
+    s = _summary(t, T)
     assert s['crossed'] is True and s['time_to_cross_s'] == pytest.approx(0.5)
 
 
 def test_the_live_rule_ends_a_walk_that_makes_no_progress():
     stuck = [(0.5 * k, 1.20 + (0.004 if k % 2 else 0.0), 3.0) for k in range(200)]
-    t, T, fallen = _walk(stuck)
-    from terrain_ros.tools.demo import WalkEnd
-    rule = WalkEnd(2.15, stall_s=60.0)
-    ends = [rule.update(float(a), float(b[0, 3]), bool(c)) for a, b, c in zip(t, T, fallen)]
-    k = next(i for i, e in enumerate(ends) if e)
-    assert ends[k].startswith('stalled') and t[k] == pytest.approx(60.0)
+    reason, t_end = _live_end(*_walk(stuck))
+    assert reason.startswith('stalled') and t_end == pytest.approx(60.0)
