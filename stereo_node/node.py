@@ -13,9 +13,11 @@ Publications:
 
 Left and right images are paired by exact header stamp in a small bounded synchroniser
 (message_filters is not available). Camera infos are the latest received per side. A complete
-pair waits in a one-slot buffer; a newer pair replaces it (counted as ``stale_pair``). Without
-capture requests a timer processes the slot at most ``max_rate_hz``; with them, only the first
-pair stamped at or after a request is processed (paper 000: pictures when the body is stable).
+pair is processed at once unless the previous one was processed less than ``1 / max_rate_hz``
+ago (node clock, simulated with ``use_sim_time``); then it waits in a one-slot buffer, a newer
+pair replaces it (counted as ``stale_pair``), and a timer processes the slot when the rate
+allows. With capture requests, only the first pair stamped at or after a request is processed
+(paper 000: pictures when the body is stable).
 
 Every refused input is counted under its reason key and logged once (then every 100th time);
 nothing is published for it.
@@ -126,6 +128,7 @@ class StereoNode(Node):
         self._pipeline: Optional[StereoPipeline] = None
         self._pending: Optional[Tuple[Image, Image]] = None
         self._request_stamp: Optional[float] = None
+        self._last_taken_ns: Optional[int] = None   # node clock when a pair was last taken
         self.frames_processed = 0
 
         self.pub_disparity = self.create_publisher(DisparityImage, '/stereo/disparity', SENSOR_QOS)
@@ -200,10 +203,22 @@ class StereoNode(Node):
         self._pending = pair
         if self.node_cfg.capture_on_request:
             self._try_pending()
+        else:
+            self._on_timer()
+
+    def _rate_allows(self) -> bool:
+        """True when no pair was taken within the last ``1 / max_rate_hz`` of the node clock
+        (or the clock went back, e.g. a restarted simulation)."""
+        if self._last_taken_ns is None:
+            return True
+        elapsed = self.get_clock().now().nanoseconds - self._last_taken_ns
+        return elapsed < 0 or elapsed >= 1e9 / self.node_cfg.max_rate_hz
 
     def _on_timer(self) -> None:
-        if not self.node_cfg.capture_on_request and self._pending is not None:
+        if (not self.node_cfg.capture_on_request and self._pending is not None
+                and self._rate_allows()):
             pair, self._pending = self._pending, None
+            self._last_taken_ns = self.get_clock().now().nanoseconds
             self.process_pair(*pair)
 
     def _try_pending(self) -> None:

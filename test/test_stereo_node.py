@@ -1,6 +1,8 @@
 """stereo_node in process: a published rendered pair becomes a cloud on the true surface; every
 bad input is counted, logged and never published."""
 
+import time
+
 import numpy as np
 import pytest
 from diagnostic_msgs.msg import DiagnosticArray
@@ -238,14 +240,30 @@ def test_sync_pairs_by_exact_stamp_and_bounds_its_queue():
     assert pair is not None and dropped == [(3, 0)]
 
 
-def test_rate_mode_keeps_only_the_newest_pair(ros_context, scene):
-    node = StereoNode(context=ros_context)
+def test_rate_mode_processes_at_once_then_keeps_only_the_newest_pair(ros_context, scene):
+    # At most 0.5 pairs/s: the first pair is processed in its image callback (no wait for the
+    # timer), the next two within the period wait in the one-slot buffer, the newer replacing
+    # the older, until the rate allows the timer to process it.
+    node = StereoNode(context=ros_context, parameter_overrides=[
+        Parameter('max_rate_hz', value=0.5), Parameter('always_process', value=True),
+        Parameter('num_disparities', value=64), Parameter('block_size_px', value=9)])
     _, left, right, _ = scene
+    for side, info in zip(('left', 'right'), stereo_to_camera_info(STEREO, FRAME, 1.0)):
+        node._on_info(side, info)
     for t in (1.0, 1.1, 1.2):
         node._on_image('left', numpy_to_image(left, 'mono8', FRAME, t))
         node._on_image('right', numpy_to_image(right, 'mono8', FRAME, t))
-    assert node.counters['stale_pair'] == 2
+        if t == 1.0:
+            assert node.frames_processed == 1 and node._pending is None
+    assert node.frames_processed == 1
+    assert node.counters['stale_pair'] == 1
     assert node._pending[0].header.stamp == sec_to_stamp(1.2)
+    node._on_timer()                                     # within the period: still waiting
+    assert node.frames_processed == 1 and node._pending is not None
+    assert node.set_parameters([Parameter('max_rate_hz', value=1000.0)])[0].successful
+    time.sleep(0.01)                                     # > 1 ms: the rate allows it
+    node._on_timer()
+    assert node.frames_processed == 2 and node._pending is None
     node.destroy_node()
 
 
