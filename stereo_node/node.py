@@ -13,10 +13,10 @@ Publications:
 
 Left and right images are paired by exact header stamp in a small bounded synchroniser
 (message_filters is not available). Camera infos are the latest received per side. A complete
-pair is processed at once unless the previous one was processed less than ``1 / max_rate_hz``
-ago (node clock, simulated with ``use_sim_time``); then it waits in a one-slot buffer, a newer
-pair replaces it (counted as ``stale_pair``), and a timer processes the slot when the rate
-allows. With capture requests, only the first pair stamped at or after a request is processed
+pair is processed at once (``process_on_arrival``) unless the previous one was processed less
+than ``1 / max_rate_hz`` ago (node clock, simulated with ``use_sim_time``); then it waits in a
+one-slot buffer, a newer pair replaces it (counted as ``stale_pair``), and a timer processes the
+slot when the rate allows. With capture requests, only the first pair stamped at or after a request is processed
 (paper 000: pictures when the body is stable).
 
 Every refused input is counted under its reason key and logged once (then every 100th time);
@@ -67,6 +67,10 @@ class StereoNodeConfig:
     diagnostics_period_s: float = param(1.0, 'period of the counters message [s]', 0.05, 3600.0)
     always_process: bool = param(False, 'process pairs even when no one subscribes to an '
                                  'output')
+    process_on_arrival: bool = param(True, 'process a pair in its image callback when the rate '
+                                     'allows; false: only on the rate timer\'s next tick (up to '
+                                     'a period later; the latency baseline of terrain-bench '
+                                     'latency)')
 
 
 class StereoSync:
@@ -203,7 +207,7 @@ class StereoNode(Node):
         self._pending = pair
         if self.node_cfg.capture_on_request:
             self._try_pending()
-        else:
+        elif self.node_cfg.process_on_arrival:
             self._on_timer()
 
     def _rate_allows(self) -> bool:
