@@ -8,7 +8,7 @@ ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 VENV="${VENV:-$ROOT/.venv}"
 OUT="$ROOT/runs/bench"
 SUITES_GIVEN="${SUITES:-}"
-SUITES="${SUITES:-stereo icp fill plan sim closed-loop}"
+SUITES="${SUITES:-stereo icp fill plan sim latency closed-loop}"
 mkdir -p "$OUT"
 export ROS_AUTOMATIC_DISCOVERY_RANGE="${ROS_AUTOMATIC_DISCOVERY_RANGE:-LOCALHOST}"
 for s in $SUITES; do

@@ -14,7 +14,8 @@ import platform
 import sys
 from pathlib import Path
 
-ORDER = ['stereo', 'icp', 'icp-replay', 'fill', 'plan', 'sim', 'world', 'pipeline', 'closed-loop']
+ORDER = ['stereo', 'icp', 'icp-replay', 'fill', 'plan', 'sim', 'world', 'pipeline', 'latency',
+         'closed-loop']
 REPO = Path(__file__).resolve().parents[2]
 # Lines pybullet's C library prints on every connection: not benchmark output.
 NOISE = ('argv[0]=', 'pybullet build time')
