@@ -144,6 +144,12 @@ class PlannerConfig:
         'foot of its pair (front or hind), as a share of the nominal one: legs stepping around '
         'rocks must not bring a pair\'s feet together under the body, where the robot rolls '
         'over on the next swing (0 = no limit) [-]', 0.0, 1.0)
+    max_stance_width: float = param(
+        1.5, 'widest distance across the walking direction between a left foot and the right '
+        'foot of its pair, as a share of the nominal one: legs stepping around rocks one side '
+        'after the other spread the stance until no body pose keeps every foot within the hip '
+        'joints\' limits (the closed loop\'s stalls, feet 13-15 cm from the body\'s centre '
+        'line; 0 = no limit) [-]', 0.0, 10.0)
     nominal_weight_per_m2: float = param(
         20.0, "cost per square metre of distance from the stride rule's foothold (the search "
         'area centre): keeps legs from lagging into dead ends [1/m^2]', 0.0, 1e6)
@@ -963,6 +969,13 @@ class FootstepPlanner:
             if not np.any(ok):
                 return None, (f'no cell of its search area keeps the stance {gap:.3f} m wide '
                               f'(the {LEG_NAMES[mate]} foot)')
+        if cfg.max_stance_width > 0:
+            mate = _ACROSS[leg]
+            span = cfg.max_stance_width * abs(self.nom_v[mate] - self.nom_v[leg])
+            ok &= np.abs(v - fv[mate]) <= span
+            if not np.any(ok):
+                return None, (f'no cell of its search area keeps the stance within {span:.3f} m '
+                              f'wide (the {LEG_NAMES[mate]} foot)')
         xy, u, v, ij = xy[ok], u[ok], v[ok], ij[ok]
         z = g[ELEVATION][ij[:, 0], ij[:, 1]].astype(np.float64)
         pts = np.c_[xy, z]

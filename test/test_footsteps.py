@@ -482,10 +482,11 @@ def test_a_front_foot_leads_its_hind_foot_by_at_most_the_stance_length():
     assert lead[0.0] > 1.3 * spacing + 0.02
 
 
-def _blocked_lane_scene():
-    """A 5 cm roof-shaped block in RF's lane (+-4.5 cm of its nominal line) from 5 cm to 30 cm
-    ahead of the foot, on flat ground: ``(grid, block mask, nominal feet, stance on the
-    ground)``. A roof, not a flat top: every cell on it is steeper than the slope limit."""
+def _blocked_lane_scene(offset_m: float = 0.0):
+    """A 5 cm roof-shaped block in RF's lane (+-4.5 cm of its nominal line, moved ``offset_m``
+    to the left) from 5 cm to 30 cm ahead of the foot, on flat ground: ``(grid, block mask,
+    nominal feet, stance on the ground)``. A roof, not a flat top: every cell on it is steeper
+    than the slope limit."""
     n = 150
     origin = (-0.75, -0.75)
     nom = np.array(ROBOT.nominal_feet)
@@ -493,8 +494,9 @@ def _blocked_lane_scene():
     y = origin[1] + (np.arange(n) + 0.5) * RES
     X, Y = np.meshgrid(x, y, indexing='ij')
     rf = nom[fs.RF]
-    box = (X > rf[0] + 0.05) & (X < rf[0] + 0.30) & (np.abs(Y - rf[1]) < 0.045)
-    g = _grid(np.where(box, 0.05 - 0.8 * np.abs(Y - rf[1]), 0.0), origin)
+    yc = rf[1] + offset_m
+    box = (X > rf[0] + 0.05) & (X < rf[0] + 0.30) & (np.abs(Y - yc) < 0.045)
+    g = _grid(np.where(box, 0.05 - 0.8 * np.abs(Y - yc), 0.0), origin)
     feet = nom.copy()
     feet[:, 2] = 0.0
     return g, box, nom, feet
@@ -547,6 +549,29 @@ def test_a_pair_of_feet_keeps_the_stance_width():
         gaps[width] = feet[fs.LF, 1] - plan.footsteps[0].position[1]
     assert gaps[0.45] >= 0.45 * nominal_width - 1e-9
     assert gaps[0.0] < 0.45 * nominal_width
+
+
+def test_a_pair_of_feet_keeps_within_the_widest_stance():
+    """The blocked-lane scene with the block moved 3 cm inwards, so RF steps around it on the
+    outside, and LF standing 4 cm outside its nominal line: the front pair would end up ~1.6
+    nominal widths apart (the closed loop's stalls: feet 13-15 cm from the body's centre
+    line, beyond the hip joints' limits). With max_stance_width 1.3 the RF foothold stays
+    within 1.3 nominal widths of LF; without it (0), the test's counterfactual, it does not."""
+    g, _, nom, feet = _blocked_lane_scene(offset_m=0.03)
+    feet[fs.LF, 1] += 0.04
+    nominal_width = nom[fs.LF, 1] - nom[fs.RF, 1]
+    widths = {}
+    for width in (1.3, 0.0):
+        cfg = fs.PlannerConfig(trot_threshold_m=0.0, horizon_steps=1, recovery=False,
+                               max_stance_width=width)
+        planner = fs.FootstepPlanner(ROBOT, cfg)
+        assert planner.set_map(g) is None
+        plan = planner.plan(_pose(), np.array([0.6, 0.0]), feet=feet, first_leg=fs.RF)
+        assert plan.ok and plan.footsteps[0].leg == fs.RF, plan.status_text
+        _check_plan_feasible(plan, cfg)
+        widths[width] = feet[fs.LF, 1] - plan.footsteps[0].position[1]
+    assert widths[1.3] <= 1.3 * nominal_width + 1e-9
+    assert widths[0.0] > 1.3 * nominal_width
 
 
 def test_plan_checked_keeps_what_the_executor_accepts():
