@@ -16,8 +16,8 @@ Left and right images are paired by exact header stamp in a small bounded synchr
 pair is processed at once (``process_on_arrival``) unless the previous one was processed less
 than ``1 / max_rate_hz`` ago (node clock, simulated with ``use_sim_time``); then it waits in a
 one-slot buffer, a newer pair replaces it (counted as ``stale_pair``), and a timer processes the
-slot when the rate allows. With capture requests, only the first pair stamped at or after a request is processed
-(paper 000: pictures when the body is stable).
+slot when the rate allows. With capture requests, only the first pair stamped at or after a
+request is processed (paper 000: pictures when the body is stable).
 
 Every refused input is counted under its reason key and logged once (then every 100th time);
 nothing is published for it.

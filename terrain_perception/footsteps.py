@@ -959,19 +959,21 @@ class FootstepPlanner:
             if not np.any(ok):
                 return None, (f'no cell of its search area keeps the stance within {span:.3f} m '
                               f'(the {LEG_NAMES[mate]} foot)')
+        # The stance's width across the walking line, this foot to the other foot of its pair,
+        # as a share of the nominal width: at least min_stance_width (a left foot stays left of
+        # its pair's right foot by it; feet together under the body roll the robot over), at
+        # most max_stance_width (spread wider, no body pose keeps every foot in reach).
+        mate = _ACROSS[leg]
+        width = abs(self.nom_v[mate] - self.nom_v[leg])
         if cfg.min_stance_width > 0:
-            # Keep the stance wide: a left foot stays left of its pair's right foot (and a right
-            # foot right of its left one) by a share of the nominal width.
-            mate = _ACROSS[leg]
-            gap = cfg.min_stance_width * abs(self.nom_v[mate] - self.nom_v[leg])
+            gap = cfg.min_stance_width * width
             ok &= (v >= fv[mate] + gap) if self.nom_v[leg] > self.nom_v[mate] else \
                 (v <= fv[mate] - gap)
             if not np.any(ok):
                 return None, (f'no cell of its search area keeps the stance {gap:.3f} m wide '
                               f'(the {LEG_NAMES[mate]} foot)')
         if cfg.max_stance_width > 0:
-            mate = _ACROSS[leg]
-            span = cfg.max_stance_width * abs(self.nom_v[mate] - self.nom_v[leg])
+            span = cfg.max_stance_width * width
             ok &= np.abs(v - fv[mate]) <= span
             if not np.any(ok):
                 return None, (f'no cell of its search area keeps the stance within {span:.3f} m '

@@ -20,10 +20,10 @@ output minus on its input). CPU per process is read from ``/proc`` once a second
 goes (the demo's process tree). The suite only starts processes; it imports nothing from ROS.
 
 JSON: ``latency_ms_median``, ``latency_ms_p95`` (shipped), ``speedup_shipped`` (baseline
-median / shipped median), ``variants`` (name -> ``latency_ms_median``, ``latency_ms_p95``, ``plans``,
-``stage_ms_median``, ``cpu_s`` per process, ``cpu_share`` (CPU seconds per wall second, all
-processes), ``real_time_factor``, ``run_dir``), ``ratio_median`` (name -> baseline median /
-variant median), ``baseline``, ``settings``.
+median / shipped median), ``variants`` (name -> ``latency_ms_median``, ``latency_ms_p95``,
+``plans``, ``stage_ms_median``, ``cpu_s`` per process, ``cpu_share`` (CPU seconds per wall
+second, all processes), ``real_time_factor``, ``run_dir``), ``ratio_median`` (name -> baseline
+median / variant median), ``baseline``, ``settings``.
 """
 
 from __future__ import annotations
