@@ -133,6 +133,7 @@ class StereoNode(Node):
         self._pending: Optional[Tuple[Image, Image]] = None
         self._request_stamp: Optional[float] = None
         self._last_taken_ns: Optional[int] = None   # node clock when a pair was last taken
+        self.pairs_taken = 0          # pairs handed to process_pair (published or refused)
         self.frames_processed = 0
 
         self.pub_disparity = self.create_publisher(DisparityImage, '/stereo/disparity', SENSOR_QOS)
@@ -223,6 +224,7 @@ class StereoNode(Node):
                 and self._rate_allows()):
             pair, self._pending = self._pending, None
             self._last_taken_ns = self.get_clock().now().nanoseconds
+            self.pairs_taken += 1
             self.process_pair(*pair)
 
     def _try_pending(self) -> None:
@@ -232,6 +234,7 @@ class StereoNode(Node):
         if t >= self._request_stamp:
             pair, self._pending = self._pending, None
             self._request_stamp = None
+            self.pairs_taken += 1
             self.process_pair(*pair)
 
     # ------------------------------------------------------------------ processing

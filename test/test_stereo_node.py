@@ -263,7 +263,7 @@ def test_rate_mode_processes_at_once_then_keeps_only_the_newest_pair(ros_context
     assert node.set_parameters([Parameter('max_rate_hz', value=1000.0)])[0].successful
     time.sleep(0.01)                                     # > 1 ms: the rate allows it
     node._on_timer()
-    assert node.frames_processed == 2 and node._pending is None
+    assert node.frames_processed == 2 and node._pending is None and node.pairs_taken == 2
     node.destroy_node()
 
 

@@ -29,8 +29,8 @@ conversion is not counted.
 Stages (per capture = per left-image stamp; the row's capture is the header stamp of the
 message the stage worked on):
 
-    stereo     the image callback that completed a pair + the node's timer callback, which
-               processes the pair (here called at once): disparity, clouds, ground plane
+    stereo     the image callback that completed a pair, which processes it (no rate limit
+               here): disparity, clouds, ground plane
     icp        icp_mapper's /stereo/points callback: self filter, ICP, fusion, map publishing
     fill       terrain_fill's update: whichever callback (/map/fine, /map/capture_poses, or the
                emulated ``process_period_s`` timer) actually ran it
@@ -289,8 +289,9 @@ class Replay:
         self.nodes: list = []
         try:
             P = Parameter
+            # Every recorded pair is processed (no rate limit between the replayed pairs).
             self.S = self._add(StereoNode(context=self.ctx, parameter_overrides=[
-                P('always_process', value=True)]))
+                P('always_process', value=True), P('max_rate_hz', value=1000.0)]))
             self.M = self._add(IcpMapperNode(context=self.ctx, parameter_overrides=[
                 P('robot', value=robot)]))
             self.F = self._add(TerrainFillNode(context=self.ctx, parameter_overrides=[
@@ -431,10 +432,11 @@ def run_profile(bag: Path, reader, robot: Tuple[str, str], library_height: Tuple
 
             def work():
                 msg = deserialize_message(raw, types['/stereo/left/image_rect'])
-                S._on_image(side, msg)
-                if S._pending is not None:        # a pair completed: the timer's work, now
-                    box['pair'] = True
+                taken = S.pairs_taken
+                S._on_image(side, msg)            # a completed pair is processed in it
+                if S._pending is not None:        # (or waits for the rate timer: run it now)
                     S._on_timer()
+                box['pair'] = S.pairs_taken != taken
             stamp = peek_stamp(raw)
             R.call(('stereo',), work, lambda: ('stereo', stamp) if box['pair']
                    else ('stereo_input', None))
