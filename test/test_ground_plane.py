@@ -79,7 +79,7 @@ def test_plane_from_normal_orients_towards_camera():
     assert p.height_m == 0.5 and p.pitch_rad == 0.0
     # Up seen from a camera pitched 0.3 rad down is (0, -cos, -sin); given flipped here.
     q = plane_from_normal([0, np.cos(0.3), np.sin(0.3)], -2.0)
-    assert q.d == 2.0 and np.isclose(q.pitch_rad, 0.3)
+    assert np.isclose(q.d, 2.0, rtol=0.0, atol=1e-12) and np.isclose(q.pitch_rad, 0.3)
     assert np.isclose(camera_pitch_from_pose(camera_looking_down(0.25, 1.0)), 0.25)
     # An optical frame equal to the world frame looks straight up.
     assert np.isclose(camera_pitch_from_pose(make_T(rot_x(0.0))), -np.pi / 2)
