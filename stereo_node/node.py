@@ -211,19 +211,21 @@ class StereoNode(Node):
         elif self.node_cfg.process_on_arrival:
             self._on_timer()
 
-    def _rate_allows(self) -> bool:
+    def _rate_allows(self, now_ns: int) -> bool:
         """True when no pair was taken within the last ``1 / max_rate_hz`` of the node clock
-        (or the clock went back, e.g. a restarted simulation)."""
+        before ``now_ns`` (or the clock went back, e.g. a restarted simulation)."""
         if self._last_taken_ns is None:
             return True
-        elapsed = self.get_clock().now().nanoseconds - self._last_taken_ns
+        elapsed = now_ns - self._last_taken_ns
         return elapsed < 0 or elapsed >= 1e9 / self.node_cfg.max_rate_hz
 
     def _on_timer(self) -> None:
-        if (not self.node_cfg.capture_on_request and self._pending is not None
-                and self._rate_allows()):
+        if self.node_cfg.capture_on_request or self._pending is None:
+            return
+        now_ns = self.get_clock().now().nanoseconds
+        if self._rate_allows(now_ns):
             pair, self._pending = self._pending, None
-            self._last_taken_ns = self.get_clock().now().nanoseconds
+            self._last_taken_ns = now_ns
             self.pairs_taken += 1
             self.process_pair(*pair)
 

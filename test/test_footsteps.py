@@ -528,6 +528,18 @@ def test_a_leg_blocked_in_its_lane_steps_around_the_obstacle():
     assert advance[0.0][0] < 0.5 * A
 
 
+def _rf_gap_to_lf(g, feet, **limits) -> float:
+    """In a blocked-lane scene: how far (across the walking line) RF's one planned step lands
+    to the right of LF, planned with the stance-width ``limits``."""
+    cfg = fs.PlannerConfig(trot_threshold_m=0.0, horizon_steps=1, recovery=False, **limits)
+    planner = fs.FootstepPlanner(ROBOT, cfg)
+    assert planner.set_map(g) is None
+    plan = planner.plan(_pose(), np.array([0.6, 0.0]), feet=feet, first_leg=fs.RF)
+    assert plan.ok and plan.footsteps[0].leg == fs.RF, plan.status_text
+    _check_plan_feasible(plan, cfg)
+    return feet[fs.LF, 1] - plan.footsteps[0].position[1]
+
+
 def test_a_pair_of_feet_keeps_the_stance_width():
     """The blocked-lane scene above, with LF standing 4 cm inside its nominal line: stepping
     around the block on the inside would put RF within 4-5 cm of LF across the walking
@@ -537,16 +549,7 @@ def test_a_pair_of_feet_keeps_the_stance_width():
     g, _, nom, feet = _blocked_lane_scene()
     feet[fs.LF, 1] -= 0.04
     nominal_width = nom[fs.LF, 1] - nom[fs.RF, 1]
-    gaps = {}
-    for width in (0.45, 0.0):
-        cfg = fs.PlannerConfig(trot_threshold_m=0.0, horizon_steps=1, recovery=False,
-                               min_stance_width=width)
-        planner = fs.FootstepPlanner(ROBOT, cfg)
-        assert planner.set_map(g) is None
-        plan = planner.plan(_pose(), np.array([0.6, 0.0]), feet=feet, first_leg=fs.RF)
-        assert plan.ok and plan.footsteps[0].leg == fs.RF, plan.status_text
-        _check_plan_feasible(plan, cfg)
-        gaps[width] = feet[fs.LF, 1] - plan.footsteps[0].position[1]
+    gaps = {width: _rf_gap_to_lf(g, feet, min_stance_width=width) for width in (0.45, 0.0)}
     assert gaps[0.45] >= 0.45 * nominal_width - 1e-9
     assert gaps[0.0] < 0.45 * nominal_width
 
@@ -560,16 +563,7 @@ def test_a_pair_of_feet_keeps_within_the_widest_stance():
     g, _, nom, feet = _blocked_lane_scene(offset_m=0.03)
     feet[fs.LF, 1] += 0.04
     nominal_width = nom[fs.LF, 1] - nom[fs.RF, 1]
-    widths = {}
-    for width in (1.3, 0.0):
-        cfg = fs.PlannerConfig(trot_threshold_m=0.0, horizon_steps=1, recovery=False,
-                               max_stance_width=width)
-        planner = fs.FootstepPlanner(ROBOT, cfg)
-        assert planner.set_map(g) is None
-        plan = planner.plan(_pose(), np.array([0.6, 0.0]), feet=feet, first_leg=fs.RF)
-        assert plan.ok and plan.footsteps[0].leg == fs.RF, plan.status_text
-        _check_plan_feasible(plan, cfg)
-        widths[width] = feet[fs.LF, 1] - plan.footsteps[0].position[1]
+    widths = {width: _rf_gap_to_lf(g, feet, max_stance_width=width) for width in (1.3, 0.0)}
     assert widths[1.3] <= 1.3 * nominal_width + 1e-9
     assert widths[0.0] > 1.3 * nominal_width
 
