@@ -95,6 +95,15 @@ def test_two_processes_with_params_and_remaps_stop_cleanly_on_sigint(tmp_path):
         nice = {n: int(Path(f'/proc/{p}/stat').read_text().rsplit(')', 1)[1].split()[16])
                 for n, p in pids.items()}
         assert nice['talker_b'] == nice['talker_a'] + 7 or nice['talker_b'] == 19, nice
+        # Each launched process leads its own session, so with autogroup scheduling the
+        # priority must be its autogroup's too: a nice value alone only orders threads within
+        # one session, and talker_b would get as much CPU as talker_a.
+        flag = Path('/proc/sys/kernel/sched_autogroup_enabled')
+        if flag.exists() and flag.read_text().strip() == '1':
+            group = {n: Path(f'/proc/{p}/autogroup').read_text().split() for n, p in
+                     pids.items()}
+            assert group['talker_b'][0] != group['talker_a'][0], group
+            assert group['talker_b'][-1] == '7' and group['talker_a'][-1] == '0', group
     finally:
         proc.send_signal(signal.SIGINT)
         proc.wait(timeout=30)

@@ -174,6 +174,15 @@ def _die_with_parent(nice: int = 0) -> None:
         pass
     if nice:
         os.nice(nice)
+        # With the kernel's autogroup scheduling (sched_autogroup_enabled, the default on
+        # desktop and many server kernels) the CPU is shared fairly between sessions first,
+        # and a nice value only orders the threads inside one: the setsid above made a new
+        # session, so the priority must be given to its autogroup too, or it does nothing.
+        try:
+            with open('/proc/self/autogroup', 'w') as f:
+                f.write(str(nice))
+        except OSError:
+            pass    # no autogroups (a kernel without them): os.nice alone is the priority
 
 
 def child_setup(spec: NodeSpec):
