@@ -235,6 +235,16 @@ def test_real_time_factor_paces_the_simulation(ros_context, executor):
     assert 0.0 < sim <= 0.1 * wall + 0.03
 
 
+@pytest.mark.parametrize('rtf,period,want_s', [(0.2, 0.0, 0.02), (1.0, 0.0, 0.004),
+                                               (0.0, 0.0, 0.001), (0.2, 0.005, 0.005)])
+def test_physics_timer_period(ros_context, executor, rtf, period, want_s):
+    # Each tick costs the executor ~1 ms whether a step is due or not: automatic ticks are two
+    # physics steps (2 ms of simulated time at 500 Hz) of wall time under the real-time factor.
+    h = Harness(ros_context, executor, course_class='flat', real_time_factor=rtf,
+                tick_period_s=period, physics_rate_hz=500.0)
+    assert h.node.timer.timer_period_ns == pytest.approx(want_s * 1e9, rel=1e-6)
+
+
 def test_missing_course_file_is_a_clear_error(ros_context):
     with pytest.raises(ValueError, match='course_file'):
         SimBridgeNode(context=ros_context, parameter_overrides=[
