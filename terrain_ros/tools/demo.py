@@ -38,6 +38,7 @@ environment says otherwise; set ``ROS_DOMAIN_ID`` to keep parallel runs apart.
 from __future__ import annotations
 
 import argparse
+import functools
 import importlib.metadata
 import importlib.util
 import os
@@ -102,6 +103,11 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument('--replay-rate', type=float, default=1.0,
                    help='bag playback rate with --replay (default 1)')
     p.add_argument('--no-bag', action='store_true', help='do not record a bag')
+    p.add_argument('--recorder-nice', type=int, default=10, choices=range(0, 20),
+                   metavar='0-19',
+                   help='CPU priority of the bag recorder (default 10: it yields the CPU to '
+                        'the nodes while a capture goes through them and catches up after; '
+                        'a bag written late is fine, a plan made late is not)')
     p.add_argument('--blind', action='store_true',
                    help='benchmark variant: the planner and controller get a flat map '
                         '(/map/blind, published here on every /map/fine) instead of '
@@ -293,12 +299,15 @@ def _log_tail(log_dir: Path, name: str) -> str:
     return tail[-1][:300] if tail else 'empty log'
 
 
-def start_recorder(bag_dir: Path, log_dir: Path, env: Dict[str, str]) -> subprocess.Popen:
-    """``terrain-bag record -a -o bag_dir`` in its own process group (logs/bag.log)."""
+def start_recorder(bag_dir: Path, log_dir: Path, env: Dict[str, str],
+                   nice: int = 0) -> subprocess.Popen:
+    """``terrain-bag record -a -o bag_dir`` in its own process group (logs/bag.log), at CPU
+    priority ``nice`` (0-19)."""
     exe = Path(sys.executable).parent / 'terrain-bag'
     log = open(log_dir / 'bag.log', 'w', buffering=1)
     return subprocess.Popen([str(exe), 'record', '-a', '-o', str(bag_dir)], env=env,
-                            stdout=log, stderr=subprocess.STDOUT, preexec_fn=_die_with_parent)
+                            stdout=log, stderr=subprocess.STDOUT,
+                            preexec_fn=functools.partial(_die_with_parent, nice))
 
 
 def stop_process(proc: subprocess.Popen, sig=signal.SIGINT, wait_s: float = 20.0) -> int:
@@ -753,7 +762,7 @@ def run(args) -> int:
                       blind=args.blind)
     recorder = None
     if not args.no_bag:
-        recorder = start_recorder(run_dir / 'bag', log_dir, env)
+        recorder = start_recorder(run_dir / 'bag', log_dir, env, args.recorder_nice)
         time.sleep(1.0)     # let the recorder discover the latched topics as they appear
     launcher = LoggedLauncher(specs, log_dir)
     launcher_thread = threading.Thread(target=launcher.run, daemon=True)
