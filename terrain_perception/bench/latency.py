@@ -2,14 +2,21 @@
 the earlier settings, one short ``terrain-demo`` run per variant on the same course and seed.
 
 Each variant is the demo's launch file (``config/launch/sim.yaml``) with some node parameters
-overridden, written next to the run directories:
+overridden, written next to the run directories, and sometimes a ``terrain-demo`` option:
 
 * ``before`` (the baseline): the settings up to the fourteenth session. The simulator publishes
   ``/clock`` at 500 Hz of simulated time and the stereo node processes a pair only on the next
-  tick of its ``max_rate_hz`` timer, which runs on the simulated clock.
-* ``timer_only``: as shipped, but the stereo node waits for its timer
-  (``process_on_arrival: false``).
-* ``clock500``: as shipped, but ``/clock`` at 500 Hz (``clock_rate_hz: 500``).
+  tick of its ``max_rate_hz`` timer, which runs on the simulated clock; with the fifteenth
+  session's simulator settings below.
+* ``fifteenth``: the fifteenth session's settings. The simulator's physics timer ticks every
+  5 ms of wall time (shipped: 20 ms at the real-time factor 0.2), and the simulator and the bag
+  recorder run at normal CPU priority.
+* ``no_nice``: as shipped, but the simulator and the recorder at normal CPU priority (shipped:
+  ``nice: 10`` in the launch file and ``terrain-demo --recorder-nice 10``, applied to the
+  processes' autogroups).
+* ``timer_only``, ``clock500`` (not run by default; they measured the fifteenth session's two
+  changes): as shipped, but the stereo node waits for its timer (``process_on_arrival: false``),
+  or ``/clock`` at 500 Hz (``clock_rate_hz: 500``).
 * ``shipped``: the defaults.
 
 The runs record their bag as ``make demo`` does (the recorder is part of the main job's load);
@@ -41,25 +48,39 @@ from typing import Dict
 
 LAUNCH = Path(__file__).resolve().parents[2] / 'config' / 'launch' / 'sim.yaml'
 BASELINE = 'before'
-#: Launch-file changes per variant: node name -> {'parameters': {name: value}, 'nice': n}.
+#: Changes per variant: node name -> {'parameters': {name: value}, 'nice': n} in the launch
+#: file, and '-demo' -> extra ``terrain-demo`` options.
+#: The sixteenth session's settings, undone together by ``fifteenth`` (and by ``before``).
+_SIXTEENTH_UNDONE = {'parameters': {'tick_period_s': 0.005}, 'nice': 0}
 VARIANTS: Dict[str, Dict[str, dict]] = {
-    'before': {'sim_bridge': {'parameters': {'clock_rate_hz': 500.0}},
-               'stereo_node': {'parameters': {'process_on_arrival': False}}},
+    'before': {'sim_bridge': {'parameters': {'clock_rate_hz': 500.0,
+                                             **_SIXTEENTH_UNDONE['parameters']}, 'nice': 0},
+               'stereo_node': {'parameters': {'process_on_arrival': False}},
+               '-demo': ['--recorder-nice', '0']},
+    'fifteenth': {'sim_bridge': _SIXTEENTH_UNDONE, '-demo': ['--recorder-nice', '0']},
+    'no_nice': {'sim_bridge': {'nice': 0}, '-demo': ['--recorder-nice', '0']},
     'timer_only': {'stereo_node': {'parameters': {'process_on_arrival': False}}},
     'clock500': {'sim_bridge': {'parameters': {'clock_rate_hz': 500.0}}},
     'shipped': {},
 }
 VARIANT_TITLES = {
     'before': 'baseline: /clock 500 Hz, stereo on its timer (fourteenth session)',
+    'fifteenth': 'the fifteenth session\'s settings: 5 ms simulator ticks, simulator and '
+                 'recorder at normal priority',
+    'no_nice': 'shipped, but the simulator and the recorder at normal priority',
     'timer_only': 'shipped, but the stereo node on its timer',
     'clock500': 'shipped, but /clock at 500 Hz',
     'shipped': 'as shipped',
 }
+#: Run by default (timer_only and clock500 measured the fifteenth session's two changes).
+DEFAULT_VARIANTS = ['before', 'fifteenth', 'no_nice', 'shipped']
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument('--variants', nargs='+', default=list(VARIANTS), choices=list(VARIANTS),
-                   help=f'variants to run (default: all; the baseline is {BASELINE!r})')
+    p.add_argument('--variants', nargs='+', default=list(DEFAULT_VARIANTS),
+                   choices=list(VARIANTS),
+                   help=f'variants to run (default: {" ".join(DEFAULT_VARIANTS)}; the baseline '
+                        f'is {BASELINE!r})')
     p.add_argument('--course', default='rocks-6cm', help='course class (default rocks-6cm)')
     p.add_argument('--robot', default='littledog', help='robot profile (default littledog)')
     p.add_argument('--seed', type=int, default=0, help='course seed (default 0)')
@@ -78,6 +99,8 @@ def variant_launch(name: str, src: Path = LAUNCH) -> str:
     doc = yaml.safe_load(src.read_text())
     nodes = {n['name']: n for n in doc['nodes']}
     for node, change in VARIANTS[name].items():
+        if node == '-demo':
+            continue
         if node not in nodes:
             raise ValueError(f'variant {name!r}: no node {node!r} in {src}')
         nodes[node].setdefault('parameters', {}).update(change.get('parameters', {}))
@@ -154,7 +177,8 @@ def _run_variant(args, name: str, out: Path) -> dict:
     cmd = [str(Path(sys.executable).parent / 'terrain-demo'), '--robot', args.robot,
            '--course', args.course, '--seed', str(args.seed), '--run-dir', str(run_dir),
            '--launch', str(launch), '--quiet', '--max-sim-time', str(args.sim_time),
-           '--timeout', str(args.sim_time * 8 + 240), '--image-scale', str(args.image_scale)]
+           '--timeout', str(args.sim_time * 8 + 240), '--image-scale', str(args.image_scale),
+           *VARIANTS[name].get('-demo', [])]
     t0 = time.monotonic()
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
                             env=dict(os.environ))
