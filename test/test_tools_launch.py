@@ -160,3 +160,20 @@ def test_launched_nodes_get_one_thread_per_pool_unless_the_user_set_it(tmp_path,
         assert s.env['OPENBLAS_NUM_THREADS'] == '4'
         assert s.env['ROS_AUTOMATIC_DISCOVERY_RANGE'] in ('LOCALHOST', os.environ.get(
             'ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST'))
+
+
+def test_demo_recorder_runs_at_its_priority(tmp_path):
+    # terrain-demo's bag recorder yields the CPU to the nodes (--recorder-nice): the value is
+    # the process's nice and, where autogroups are enabled, its autogroup's.
+    from terrain_ros.tools.demo import start_recorder, stop_process
+    env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST', ROS_DOMAIN_ID='93')
+    own = int(Path('/proc/self/stat').read_text().rsplit(')', 1)[1].split()[16])
+    proc = start_recorder(tmp_path / 'bag', tmp_path, env, nice=6)
+    try:
+        nice = int(Path(f'/proc/{proc.pid}/stat').read_text().rsplit(')', 1)[1].split()[16])
+        assert nice == min(own + 6, 19), nice
+        flag = Path('/proc/sys/kernel/sched_autogroup_enabled')
+        if flag.exists() and flag.read_text().strip() == '1':
+            assert Path(f'/proc/{proc.pid}/autogroup').read_text().split()[-1] == '6'
+    finally:
+        stop_process(proc, signal.SIGINT, 20.0)
