@@ -31,6 +31,16 @@ except (KeyboardInterrupt, ExternalShutdownException):
 '''
 
 
+def _nice(pid) -> int:
+    """The process's nice value (field 19 of /proc/PID/stat)."""
+    return int(Path(f'/proc/{pid}/stat').read_text().rsplit(')', 1)[1].split()[16])
+
+
+def _autogroups_enabled() -> bool:
+    flag = Path('/proc/sys/kernel/sched_autogroup_enabled')
+    return flag.exists() and flag.read_text().strip() == '1'
+
+
 def _alive(pid: int) -> bool:
     try:
         os.kill(pid, 0)
@@ -92,14 +102,12 @@ def test_two_processes_with_params_and_remaps_stop_cleanly_on_sigint(tmp_path):
             assert f'data: {word}' in echo.stdout, echo.stdout + echo.stderr
         # talker_b's launch entry lowers its priority by 7 (field 19 of /proc/PID/stat);
         # talker_a keeps the launcher's.
-        nice = {n: int(Path(f'/proc/{p}/stat').read_text().rsplit(')', 1)[1].split()[16])
-                for n, p in pids.items()}
+        nice = {n: _nice(p) for n, p in pids.items()}
         assert nice['talker_b'] == nice['talker_a'] + 7 or nice['talker_b'] == 19, nice
         # Each launched process leads its own session, so with autogroup scheduling the
         # priority must be its autogroup's too: a nice value alone only orders threads within
         # one session, and talker_b would get as much CPU as talker_a.
-        flag = Path('/proc/sys/kernel/sched_autogroup_enabled')
-        if flag.exists() and flag.read_text().strip() == '1':
+        if _autogroups_enabled():
             group = {n: Path(f'/proc/{p}/autogroup').read_text().split() for n, p in
                      pids.items()}
             assert group['talker_b'][0] != group['talker_a'][0], group
@@ -167,13 +175,12 @@ def test_demo_recorder_runs_at_its_priority(tmp_path):
     # the process's nice and, where autogroups are enabled, its autogroup's.
     from terrain_ros.tools.demo import start_recorder, stop_process
     env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST', ROS_DOMAIN_ID='93')
-    own = int(Path('/proc/self/stat').read_text().rsplit(')', 1)[1].split()[16])
+    own = _nice('self')
     proc = start_recorder(tmp_path / 'bag', tmp_path, env, nice=6)
     try:
-        nice = int(Path(f'/proc/{proc.pid}/stat').read_text().rsplit(')', 1)[1].split()[16])
+        nice = _nice(proc.pid)
         assert nice == min(own + 6, 19), nice
-        flag = Path('/proc/sys/kernel/sched_autogroup_enabled')
-        if flag.exists() and flag.read_text().strip() == '1':
+        if _autogroups_enabled():
             assert Path(f'/proc/{proc.pid}/autogroup').read_text().split()[-1] == '6'
     finally:
         stop_process(proc, signal.SIGINT, 20.0)
