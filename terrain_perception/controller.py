@@ -126,6 +126,17 @@ class WalkingConfig:
         'touchdown sensing cannot tell a foot on the ground from a shank resting on an '
         'obstacle with the foot in the air, and tilting the body after such a foot pitches it '
         'for nothing (no effect where the map is unknown or not set) [m]', 0.0, 1.0)
+    hanging_force_n: float = param(
+        -0.4, 'A stance foot whose estimated vertical force stays below this for contact_ticks '
+        'ticks hangs: a hanging LittleDog foot reads about -0.8 N (its own weight), one that '
+        'touches the ground 0 N or more [N]', -100.0, 1000.0)
+    stance_extend_m_s: float = param(
+        0.01, 'A hanging stance foot is lowered at this speed until it touches again (up to '
+        'max_stance_extend_m per segment): a foot that ended its swing 1-2 mm above the ground '
+        'otherwise lets the robot tip over the diagonal of the two feet that do carry it once '
+        'the next body shift moves the COM over it (0 = off) [m/s]', 0.0, 1.0)
+    max_stance_extend_m: float = param(0.01, 'Largest such lowering of a foot between two of '
+                                       'its swings [m]', 0.0, 0.1)
     attitude_gain: float = param(0.7, 'Share of the measured body tilt (IMU) that each body '
                                  'shift corrects by re-estimating the stance feet heights and '
                                  'changing the legs\' lengths (0 = level-body open loop) [-]',
@@ -262,10 +273,15 @@ class WalkingController:
         self.foot_loads = np.full(4, np.nan)   # estimated vertical foot forces [N]
         self._load_count = np.zeros(4, dtype=int)
         self._touch_count = np.zeros(4, dtype=int)
+        self._hanging_count = np.zeros(4, dtype=int)
+        self._extend = np.zeros(4)        # hanging stance feet lowered since the segment began
+        self._extend_sum = np.zeros(4)    # ... and since each foot's last swing or probe
+        self._extend_t = np.nan
         self._q_meas: Optional[np.ndarray] = None
         self._loaded: Optional[np.ndarray] = None   # (4,) bool, None without torques
         self._probe_legs: tuple = ()
-        self.touchdowns = {'early': 0, 'probed': 0, 'not_found': 0, 'reanchored': 0}
+        self.touchdowns = {'early': 0, 'probed': 0, 'not_found': 0, 'reanchored': 0,
+                           'extended': 0}
         self._reanchor_checked = None   # stance last checked by _reanchor_feet
         self._R_tilt: Optional[np.ndarray] = None   # measured base tilt (yaw removed)
         self._dry = False          # check_footsteps: segments without joint splines
@@ -294,6 +310,8 @@ class WalkingController:
         self._body = np.array([T[0, 3], T[1, 3], T[2, 3], yaw, 0.0, 0.0])
         self._seg = None
         self._pending_swing = None
+        self._extend = np.zeros(4)
+        self._extend_sum = np.zeros(4)
         self._recentred_at = -1
         self._queue = []
         self._t = float(t)
@@ -406,9 +424,15 @@ class WalkingController:
         if self._seg is None:
             self.status = 'standing'
             qs = self._stand_q()
-            return JointCommand(qs, np.zeros(12))
+            self._update_extension(t, qs)
+            ext = self._extension_dq(qs)
+            return JointCommand(self._clip(qs + ext) if ext is not None else qs, np.zeros(12))
         self.status = 'walking'
         pos, vel = self._seg.joints(t - self._seg.t0)
+        self._update_extension(t, pos)
+        ext = self._extension_dq(pos)
+        if ext is not None:
+            pos = pos + ext
         return JointCommand(self._clip(pos), vel)
 
     def preview(self, times: np.ndarray) -> JointCommand:
@@ -421,9 +445,16 @@ class WalkingController:
         times = np.asarray(times, dtype=float).reshape(-1)
         if self._seg is None:
             q = self._stand_q()
+            ext = self._extension_dq(q)
+            if ext is not None:
+                q = self._clip(q + ext)
             return JointCommand(np.tile(q, (len(times), 1)), np.zeros((len(times), 12)))
         pos, vel = self._seg.joints_many(times - self._seg.t0)
         vel[times >= self._seg.t_end] = 0.0
+        ext = self._extension_dq(pos[0]) if len(pos) else None
+        if ext is not None:
+            # (the segment's swing and probe legs are never extended)
+            pos = pos + ext
         return JointCommand(self._clip(pos), vel)
 
     def _clip(self, q: np.ndarray) -> np.ndarray:
@@ -551,6 +582,7 @@ class WalkingController:
 
     def _finish_segment(self) -> None:
         seg = self._seg
+        self._extend_sum[list(seg.legs)] = 0.0
         self._feet = seg.feet_end.copy()
         self._body = seg.body_end.copy()
         self._q_last = seg.q_end.copy() if seg.spline is None else seg.spline(seg.duration)
@@ -595,6 +627,64 @@ class WalkingController:
         self._supporting = np.nan_to_num(fz, nan=-np.inf) > self.config.support_force_n
         touching = np.nan_to_num(fz, nan=-np.inf) > self.config.probe_contact_force_n
         self._touch_count = np.where(touching, self._touch_count + 1, 0)
+        hanging = np.nan_to_num(fz, nan=np.inf) < self.config.hanging_force_n
+        self._hanging_count = np.where(hanging, self._hanging_count + 1, 0)
+
+    # -- hanging stance feet -------------------------------------------------------------
+    def _update_extension(self, t: float, q: np.ndarray) -> None:
+        """Lower every hanging stance foot (not swinging, not probing) by
+        ``stance_extend_m_s`` since the last tick, as long as the leg at the commanded angles
+        ``q`` (12,) is not near full stretch."""
+        c = self.config
+        dt = t - self._extend_t
+        self._extend_t = t
+        if c.stance_extend_m_s <= 0.0 or self._loaded is None or not 0.0 < dt < 0.2:
+            return
+        moving = self._seg.legs if self._seg is not None else ()
+        J = None
+        for k in range(4):
+            room = c.max_stance_extend_m - self._extend_sum[k] - self._extend[k]
+            if k in moving or self._hanging_count[k] < c.contact_ticks or room <= 0.0:
+                continue
+            e = self._extend[k] + min(c.stance_extend_m_s * dt, room)
+            if J is None:
+                J = kinematics.jacobian(self.model, np.asarray(q, dtype=float).reshape(4, 3))
+            # a leg near full stretch needs large joint motions to lower its foot (and cannot
+            # at all when straight): more than 0.03 rad per mm (mid-range: ~0.01)
+            if abs(np.linalg.det(J[k])) < 1e-9 or np.abs(np.linalg.solve(
+                    J[k], [0.0, 0.0, -1e-3])).max() > 0.03:
+                continue
+            if self._extend[k] == 0.0 and self._extend_sum[k] == 0.0:
+                self.touchdowns['extended'] += 1
+            self._extend[k] = e
+
+    def _extension_dq(self, q: np.ndarray) -> Optional[np.ndarray]:
+        """(12,) joint change lowering the feet by ``_extend`` along the base's z at angles
+        ``q`` (linearised: millimetres), or None."""
+        if not np.any(self._extend > 0.0):
+            return None
+        q = np.asarray(q, dtype=float).reshape(4, 3)
+        J = kinematics.jacobian(self.model, q)
+        dq = np.zeros((4, 3))
+        for k in np.nonzero(self._extend > 0.0)[0]:
+            try:
+                dq[k] = np.linalg.solve(J[k], [0.0, 0.0, -self._extend[k]])
+            except np.linalg.LinAlgError:
+                continue
+        if not np.all(np.isfinite(dq)) or np.abs(dq).max() > 0.3:
+            return None
+        return dq.reshape(12)
+
+    def _absorb_extension(self) -> None:
+        """The lowered feet become the believed stance the next segment starts from."""
+        if not np.any(self._extend > 0.0):
+            return
+        dq = self._extension_dq(self._q_last) if self._q_last is not None else None
+        self._feet[:, 2] -= self._extend
+        self._extend_sum += self._extend
+        if dq is not None:
+            self._q_last = np.asarray(self._q_last, dtype=float).reshape(12) + dq
+        self._extend = np.zeros(4)
 
     def _touched_down(self, t: float) -> bool:
         """The segment in progress should end now: its moving feet met the ground."""
@@ -618,6 +708,7 @@ class WalkingController:
     def _cut_segment(self, t: float) -> None:
         """End the segment in progress at ``t``: the feet and body stay where they are."""
         seg = self._seg
+        self._extend_sum[list(seg.legs)] = 0.0
         tau = min(max(t - seg.t0, 0.0), seg.duration)
         self._feet = seg.feet_at(tau)
         self._body = np.asarray(seg.body_fn(tau), dtype=float).copy()
@@ -725,6 +816,7 @@ class WalkingController:
         self.touchdowns['reanchored'] += 1
 
     def _next_segment(self, t0: float) -> Optional[_Segment]:
+        self._absorb_extension()
         self._reanchor_feet()
         if self._probe_legs:
             legs, self._probe_legs = self._probe_legs, ()

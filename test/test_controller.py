@@ -523,3 +523,67 @@ def test_a_stale_rolling_reference_does_not_push_a_stretched_leg_out_of_reach():
     errors, _, _ = _step_once(ctl, rh, target)
     assert not errors, errors[:1]
     assert ctl.steps_done == 1 and ctl.touchdowns['reanchored'] >= 1
+
+
+def _torques_for(m, q, fz):
+    """Joint torques (12,) with which each foot feels the vertical ground force ``fz`` (4,)
+    [N] (base frame), the inverse of kinematics.foot_forces."""
+    J = K.jacobian(m, np.asarray(q).reshape(4, 3))
+    f = np.zeros((4, 3))
+    f[:, 2] = fz
+    return -np.einsum('kji,kj->ki', J, f).reshape(12)
+
+
+def test_a_hanging_stance_foot_is_lowered_until_it_touches():
+    # RH reads its own weight (-0.8 N): it hangs a little above the ground. Standing and
+    # walking, the controller lowers it at stance_extend_m_s until it reads a load, up to
+    # max_stance_extend_m between two of its swings; the lowered foot becomes the stance the
+    # next segment starts from (no jump in the joint commands), and the other feet stay.
+    m = load_robot_model('littledog')
+
+    def run(rate, hang_until, walk=True, t_stand=0.6):
+        # (no recentring: it would move the body towards the lowered foot's new height)
+        cfg = WalkingConfig(plan_timeout_s=1e3, stance_extend_m_s=rate, recenter=False)
+        ctl = WalkingController(m, cfg)
+        ctl.reset(0.0, None, make_T(np.eye(3), [0.0, 0.0, m.standing_height_m]))
+        fz = np.array([7.0, 7.0, 7.0, -0.8])
+        q, t, z, jumps = K.standing_joint_angles(m).reshape(12), 0.0, [], []
+
+        def tick(t, q):
+            before = ctl.phase.legs if ctl.phase is not None else ()
+            cmd = ctl.update(t, q, np.zeros(12), _torques_for(m, q, fz))
+            moving = set(before) | set(ctl.phase.legs if ctl.phase is not None else ())
+            stance = [k for k in range(4) if k not in moving]
+            jumps.append(np.abs(cmd.positions - q).reshape(4, 3)[stance].max())
+            return cmd.positions
+        while t < t_stand:
+            fz[3] = -0.8 if t < hang_until else 3.0        # it touches from hang_until on
+            q = tick(t, q)
+            z.append(K.forward(m, q.reshape(4, 3))[:, 2])
+            t += DT
+        if walk:
+            legs, pos = G.straight_footsteps(m, ctl.odom_pose, 0.1)
+            ctl.set_footsteps(legs, pos, 'walk', t)
+            t_walk = t
+            while t < t_walk + 6.0 and (ctl.phase is not None or ctl.pending_steps):
+                # RH hangs again for 0.2 s while the body starts its first shift
+                fz[3] = -0.8 if t < t_walk + 0.2 else 3.0
+                q = tick(t, q)
+                t += DT
+            assert ctl.steps_done == len(legs), ctl.last_error
+        return ctl, np.array(z), max(jumps)
+
+    ctl, z, jump = run(0.01, 0.3)
+    drop = z[0] - z                            # how far each foot was lowered (base frame)
+    assert np.abs(drop[:, :3]).max() < 1e-6    # the loaded feet stay
+    # 3 debounce ticks, then 1 cm/s: ~2.7 mm by 0.3 s; then it touches and stays
+    assert 0.0022 < drop[30, 3] < 0.0031
+    assert abs(drop[-1, 3] - drop[31, 3]) < 1e-6
+    assert ctl.touchdowns['extended'] >= 1
+    assert jump < 0.02       # stance joints: each segment starts from the lowered foot
+    # capped: never more than max_stance_extend_m between two swings of the foot
+    ctl, z, _ = run(0.01, 10.0, walk=False, t_stand=1.5)
+    assert abs((z[0] - z)[-1, 3] - 0.01) < 2e-4
+    # off: nothing moves
+    ctl, z, _ = run(0.0, 10.0, walk=False)
+    assert np.abs(z[0] - z).max() < 1e-9 and ctl.touchdowns['extended'] == 0
