@@ -429,13 +429,11 @@ class WalkingController:
         if self._seg is None:
             self.status = 'standing'
             qs = self._stand_q()
-            self._update_extension(t, qs)
-            ext = self._extension_dq(qs)
+            ext = self._extension_dq(qs, self._update_extension(t, qs))
             return JointCommand(self._clip(qs + ext) if ext is not None else qs, np.zeros(12))
         self.status = 'walking'
         pos, vel = self._seg.joints(t - self._seg.t0)
-        self._update_extension(t, pos)
-        ext = self._extension_dq(pos)
+        ext = self._extension_dq(pos, self._update_extension(t, pos))
         if ext is not None:
             pos = pos + ext
         return JointCommand(self._clip(pos), vel)
@@ -636,15 +634,16 @@ class WalkingController:
         self._hanging_count = np.where(hanging, self._hanging_count + 1, 0)
 
     # -- hanging stance feet -------------------------------------------------------------
-    def _update_extension(self, t: float, q: np.ndarray) -> None:
+    def _update_extension(self, t: float, q: np.ndarray) -> Optional[np.ndarray]:
         """Lower every hanging stance foot (not swinging, not probing) by
         ``stance_extend_m_s`` since the last tick, as long as the leg at the commanded angles
-        ``q`` (12,) is not near full stretch."""
+        ``q`` (12,) is not near full stretch. Returns the legs' Jacobians at ``q`` if it
+        computed them (for :meth:`_extension_dq` at the same angles), else None."""
         c = self.config
         dt = t - self._extend_t
         self._extend_t = t
         if c.stance_extend_m_s <= 0.0 or self._loaded is None or not 0.0 < dt < 0.2:
-            return
+            return None
         moving = self._seg.legs if self._seg is not None else ()
         J = None
         for k in range(4):
@@ -662,14 +661,17 @@ class WalkingController:
             if self._extend[k] == 0.0 and self._extend_sum[k] == 0.0:
                 self.touchdowns['extended'] += 1
             self._extend[k] = e
+        return J
 
-    def _extension_dq(self, q: np.ndarray) -> Optional[np.ndarray]:
+    def _extension_dq(self, q: np.ndarray, J: Optional[np.ndarray] = None
+                      ) -> Optional[np.ndarray]:
         """(12,) joint change lowering the feet by ``_extend`` along the base's z at angles
-        ``q`` (linearised: millimetres), or None."""
+        ``q`` (linearised: millimetres), or None. ``J``: the legs' Jacobians at ``q`` if the
+        caller has them."""
         if not np.any(self._extend > 0.0):
             return None
-        q = np.asarray(q, dtype=float).reshape(4, 3)
-        J = kinematics.jacobian(self.model, q)
+        if J is None:
+            J = kinematics.jacobian(self.model, np.asarray(q, dtype=float).reshape(4, 3))
         dq = np.zeros((4, 3))
         for k in np.nonzero(self._extend > 0.0)[0]:
             try:
