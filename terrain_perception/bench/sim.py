@@ -28,6 +28,7 @@ import numpy as np
 
 from terrain_perception import gait as G
 from terrain_perception.robot_model import load_robot_model
+from terrain_perception.transforms import invert, transform_points
 
 DT = 1.0 / 500.0
 
@@ -48,6 +49,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         '{"shift_zmp_offset_m": 0.008}}\' (a third row, "variant")')
     parser.add_argument('--rocks-only', action='store_true',
                         help='only the rocks walks (no real-time factor and flat walks)')
+    parser.add_argument('--localise', action='store_true',
+                        help='re-anchor the rocks walks\' dead reckoning before each plan with '
+                        'the correction a perfect ICP would give (T_map_odom from the true base '
+                        'pose), as the closed loop does with its ICP; without it the drift of '
+                        'the slipping feet goes uncorrected (odom = world)')
+    parser.add_argument('--trace', type=str, default='', metavar='DIR',
+                        help='trace every rocks walk (the truth and the controller\'s belief '
+                        'every 10 ms) to DIR/rocks6-seed<S>[-<row>].npz and print how each '
+                        'fall happened (terrain_perception.sim.trace.fall_report)')
 
 
 # The multi-seed rocks walk's baseline: the defaults before the fourth session, when hind feet
@@ -98,11 +108,20 @@ def _flat_walk(robot: str, distance_m: float, gait: str = 'walk') -> dict:
 
 
 def _rocks_walk(course, start_x: float, goal_x: float, seed: int, sensing: bool = True,
-                planner_kw: Optional[dict] = None, walking_kw: Optional[dict] = None) -> dict:
+                planner_kw: Optional[dict] = None, walking_kw: Optional[dict] = None,
+                trace_path=None, localise: bool = False) -> dict:
     """LittleDog walks ``course`` from ``start_x`` towards ``goal_x`` on footsteps planned on
     the true terrain (receding horizon, every plan dry-run through the controller's checks).
     ``planner_kw``/``walking_kw`` override :class:`PlannerConfig`/:class:`WalkingConfig`
-    defaults."""
+    defaults. With ``trace_path`` the walk is traced (:mod:`terrain_perception.sim.trace`)
+    to that .npz, and a fall's report is returned as ``fall_report``.
+
+    The controller's dead reckoning drifts from the truth (the feet slip); without
+    ``localise`` nothing corrects it (odom = world), so footsteps planned on the true
+    terrain land where the drift puts them. ``localise`` re-anchors it before each plan with
+    the correction a perfect ICP would give, ``T_map_odom = T_true_base inv(T_odom_base)``
+    (the mapper's formula), and plans in the map (world) frame as the closed loop does."""
+    from terrain_perception.sim.trace import WalkTrace, fall_report
     from terrain_perception.footsteps import PlannerConfig, FootstepPlanner
     from terrain_perception.sim.session import SimSession, SimSessionConfig
     from terrain_perception.sim.walk import WalkRunner
@@ -117,8 +136,9 @@ def _rocks_walk(course, start_x: float, goal_x: float, seed: int, sensing: bool 
         if not sensing:
             wkw.update(contact_force_n=0.0, attitude_gain=0.0)
         cfg = WalkingConfig(**wkw)
+        trace = WalkTrace() if trace_path is not None else None
         runner = WalkRunner(client, robot, cfg, dt_s=DT, height=height,
-                            ground_id=(world.floor_id, world.terrain_id))
+                            ground_id=(world.floor_id, world.terrain_id), trace=trace)
         # Walk gait only: LittleDog's profile has no trot (the controller's trot is Shao's
         # quasi-static one, COG on the diagonal). trot_threshold_m keeps its default: it is also
         # the flatness test of stride_centre 'adaptive'.
@@ -135,9 +155,14 @@ def _rocks_walk(course, start_x: float, goal_x: float, seed: int, sensing: bool 
             if T[0, 3] >= goal_x - 0.05 or runner.fell:
                 break
             # As the planner node does: from the controller's own stance and body pose (its
-            # /walking/stance; odom = world here), only the steps its own checks accept.
-            feet, _ = runner.controller.upcoming_stance()
-            T_chk = runner.controller.upcoming_body()
+            # /walking/stance, put in the map with its T_map_odom; the identity unless
+            # localised), only the steps its own checks accept.
+            ctl = runner.controller
+            if localise:
+                ctl.apply_correction(T @ invert(ctl.odom_pose))
+            feet, _ = ctl.upcoming_stance()
+            feet = transform_points(ctl.T_map_odom, feet)
+            T_chk = ctl.T_map_odom @ ctl.upcoming_body()
             plan = planner.plan_checked(
                 T, goal, feet, lambda legs, pos, feet=feet, T_chk=T_chk: check_footsteps(
                     m, cfg, feet, legs, pos, 'walk', height, T_body=T_chk),
@@ -149,7 +174,7 @@ def _rocks_walk(course, start_x: float, goal_x: float, seed: int, sensing: bool 
             pos = np.array([f.position for f in plan.footsteps])
             gait = 'trot' if plan.gait == 2 else 'walk'
             done_before = runner.controller.steps_done
-            if not runner.run(legs, pos, gait, max_time_s=30.0):
+            if not runner.run(legs, pos, gait, max_time_s=30.0, frame='map'):
                 # A refused step: replan from where the robot stands (receding horizon);
                 # give up after 3 refusals in a row.
                 status = f'controller: {runner.controller.last_error or "timeout"}'
@@ -168,7 +193,13 @@ def _rocks_walk(course, start_x: float, goal_x: float, seed: int, sensing: bool 
     finally:
         session.close()
     advanced = float(res.T_end[0, 3] - res.T_start[0, 3])
-    return {'robot': 'littledog', 'course': 'rocks-6cm', 'seed': seed, 'start_x_m': start_x,
+    extra = {}
+    if trace is not None:
+        trace.save(trace_path, seed=seed, status=status, fell=res.fell,
+                   planner_kw=json.dumps(planner_kw or {}), walking_kw=json.dumps(wkw))
+        extra = {'trace': str(trace_path), 'fall_report': fall_report(trace.arrays())}
+    return {**extra, 'robot': 'littledog', 'course': 'rocks-6cm', 'seed': seed,
+            'start_x_m': start_x,
             'sensing': sensing,
             'goal_x_m': goal_x, 'reached': bool(res.T_end[0, 3] >= goal_x - 0.05),
             'status': status, 'fell': res.fell, 'steps': res.steps_done,
@@ -206,10 +237,27 @@ def parse_rocks_variant(text: str) -> Optional[dict]:
     return {'planner': dict(v.get('planner', {})), 'controller': dict(v.get('controller', {}))}
 
 
+def _trace_path(trace_dir: str, seed: int, row: str = ''):
+    """Where a rocks walk's trace goes (None without ``--trace``)."""
+    from pathlib import Path
+    if not trace_dir:
+        return None
+    return Path(trace_dir) / f'rocks6-seed{seed}{"-" + row if row else ""}.npz'
+
+
+def _print_fall_reports(walks) -> None:
+    for name, r in walks:
+        if r.get('fall_report'):
+            print(f'\n--- {name}, seed {r["seed"]}: how it fell (trace {r["trace"]})\n'
+                  + r['fall_report'])
+
+
 def _rocks_seeds(n: int, start_x: float, goal_x: float, first: int = 0,
-                 variant: Optional[dict] = None) -> dict:
+                 variant: Optional[dict] = None, trace_dir: str = '',
+                 localise: bool = False) -> dict:
     """The ground-truth-footstep rocks walk on seeds first..first+n-1, defaults against the
-    baseline (and a variant of the defaults, if given)."""
+    baseline (and a variant of the defaults, if given); traced to ``trace_dir`` if given,
+    localised (:func:`_rocks_walk`) if asked."""
     from terrain_perception.terrain import make_course
     rows = {'default': [], 'baseline': []}
     if variant is not None:
@@ -217,15 +265,21 @@ def _rocks_seeds(n: int, start_x: float, goal_x: float, first: int = 0,
     seeds = list(range(first, first + n))
     for seed in seeds:
         course = make_course('rocks-6cm', seed, 0.005)
-        rows['default'].append(_rocks_walk(course, start_x, goal_x, seed))
+        rows['default'].append(_rocks_walk(course, start_x, goal_x, seed, localise=localise,
+                                           trace_path=_trace_path(trace_dir, seed, 'default')))
         rows['baseline'].append(_rocks_walk(course, start_x, goal_x, seed,
                                             planner_kw=ROCKS_BASELINE[0],
-                                            walking_kw=ROCKS_BASELINE[1]))
+                                            walking_kw=ROCKS_BASELINE[1], localise=localise,
+                                            trace_path=_trace_path(trace_dir, seed, 'baseline')))
         if variant is not None:
             rows['variant'].append(_rocks_walk(course, start_x, goal_x, seed,
                                                planner_kw=variant['planner'],
-                                               walking_kw=variant['controller']))
-    print(f'\nrocks-6cm, ground-truth footsteps, x {start_x} -> {goal_x} m, seeds '
+                                               walking_kw=variant['controller'],
+                                               localise=localise,
+                                               trace_path=_trace_path(trace_dir, seed,
+                                                                      'variant')))
+    print(f'\nrocks-6cm, ground-truth footsteps{", localised" if localise else ""}, '
+          f'x {start_x} -> {goal_x} m, seeds '
           f'{seeds[0]}-{seeds[-1]}{" (held out: defaults chosen on 0-7)" if first >= 8 else ""} '
           f'(F = fell, X = crossed); baseline: {ROCKS_BASELINE_NAME} '
           f'(planner {ROCKS_BASELINE[0]}, controller {ROCKS_BASELINE[1]})'
@@ -248,6 +302,7 @@ def _rocks_seeds(n: int, start_x: float, goal_x: float, first: int = 0,
         print(f'{name:<9} {marks}  | crossed {summary[name]["crossed"]}/{n}, falls '
               f'{summary[name]["falls"]}, mean advance {summary[name]["advanced_m_mean"]:.2f} m'
               + (f', crossing time median {t:.0f} s sim' if t is not None else ''))
+    _print_fall_reports((name, r) for name, rs in rows.items() for r in rs)
     return {'rocks6_seeds': summary, 'rocks6_seed_rows': rows}
 
 
@@ -257,11 +312,13 @@ def run(args: argparse.Namespace) -> dict:
     seed = int(getattr(args, 'seed', 0))
     n_rocks = int(getattr(args, 'rocks_seeds', 0) or 0)
     variant = parse_rocks_variant(getattr(args, 'rocks_variant', '') or '')
+    trace_dir = str(getattr(args, 'trace', '') or '')
+    localise = bool(getattr(args, 'localise', False))
     if getattr(args, 'rocks_only', False):
         if n_rocks <= 0:
             raise ValueError('--rocks-only needs --rocks-seeds N (N >= 1)')
         return _rocks_seeds(n_rocks, 0.4, 2.4, int(getattr(args, 'rocks_first_seed', 0)),
-                            variant)
+                            variant, trace_dir, localise)
     course = make_course('rocks-6cm', seed, 0.005)
 
     rtf_rows = []
@@ -284,7 +341,8 @@ def run(args: argparse.Namespace) -> dict:
     if not quick:
         flat.append(_flat_walk('frog', 2.0))
         flat.append(_flat_walk('frog', 2.0, 'trot'))
-    rocks = _rocks_walk(course, 0.8 if quick else 0.4, 1.3 if quick else 2.4, seed)
+    rocks = _rocks_walk(course, 0.8 if quick else 0.4, 1.3 if quick else 2.4, seed,
+                        trace_path=_trace_path(trace_dir, seed), localise=localise)
     # baseline: the same controller without touchdown sensing and levelling (open loop)
     rocks_blind = _rocks_walk(course, 0.8 if quick else 0.4, 1.3 if quick else 2.4, seed,
                               sensing=False)
@@ -304,6 +362,7 @@ def run(args: argparse.Namespace) -> dict:
         print(f'rocks-6cm {what}: x {r["start_x_m"]} -> {r["goal_x_m"]} m, '
               f'reached={r["reached"]}, status: {r["status"]}, steps {r["steps"]}, max tilt '
               f'{r["max_tilt_deg"]:.1f} deg')
+    _print_fall_reports([('littledog rocks-6cm', rocks)])
 
     native = {row['robot']: row for row in rtf_rows if row['scale'] == 1.0}
     out = {
@@ -323,5 +382,5 @@ def run(args: argparse.Namespace) -> dict:
     }
     if n_rocks > 0:
         out.update(_rocks_seeds(n_rocks, 0.4, 2.4, int(getattr(args, 'rocks_first_seed', 0)),
-                                variant))
+                                variant, trace_dir, localise))
     return out

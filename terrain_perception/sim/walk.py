@@ -106,14 +106,16 @@ class WalkRunner:
     (no drift correction: dead reckoning along the desired trajectory only). Falls (tilt over
     30 deg or the body touching ``ground_id``, one body id or several), non-foot ground
     contacts and the COG margin are checked every ``check_every`` physics steps; contacts
-    with ``obstacle_id`` at every step.
+    with ``obstacle_id`` at every step. A :class:`terrain_perception.sim.trace.WalkTrace`
+    given as ``trace`` records the truth and the controller's belief as the walk runs.
     """
 
     def __init__(self, client, robot: SimRobot, config: Optional[WalkingConfig] = None,
                  dt_s: float = 1.0 / 500.0, height: gaitlib.HeightFn = None,
                  record_com: bool = False, obstacle_id: Optional[int] = None,
-                 ground_id=None, check_every: int = 5) -> None:
+                 ground_id=None, check_every: int = 5, trace=None) -> None:
         self.client, self.robot, self.dt_s = client, robot, dt_s
+        self.trace = trace      # a terrain_perception.sim.trace.WalkTrace, or None
         cfg = config or WalkingConfig(plan_timeout_s=1e6)
         self.controller = WalkingController(robot.model, cfg, height=height)
         self.T_start = robot.base_pose()
@@ -134,14 +136,17 @@ class WalkRunner:
         self._n = 0
 
     def run(self, legs: np.ndarray, positions: np.ndarray, gait: str = 'walk',
-            max_time_s: float = 300.0, on_step: Optional[Callable[[float], None]] = None
-            ) -> bool:
+            max_time_s: float = 300.0, on_step: Optional[Callable[[float], None]] = None,
+            frame: str = 'odom') -> bool:
         """Execute footsteps (world contact points) until done, a fall or ``max_time_s`` of
-        simulated time for this chunk; True when every footstep was executed."""
+        simulated time for this chunk; True when every footstep was executed. ``frame``
+        'map' converts them with the controller's ``T_map_odom`` (after
+        :meth:`WalkingController.apply_correction`; map = world, odom = the controller's
+        dead reckoning)."""
         ctl, robot, client = self.controller, self.robot, self.client
         legs = np.asarray(legs, int).reshape(-1)
         positions = np.asarray(positions, float).reshape(-1, 3)
-        ctl.set_footsteps(legs, positions, gait, self.t)
+        ctl.set_footsteps(legs, positions, gait, self.t, frame=frame)
         self._queue = list(zip(legs.tolist(), positions))
         done_before = ctl.steps_done
         t_end = self.t + max_time_s
@@ -157,6 +162,8 @@ class WalkRunner:
             check = self._n % self.check_every == 0
             if on_step is not None:
                 on_step(self.t)
+            if self.trace is not None:
+                self.trace.sample(self.t, client, robot, ctl, self._masses)
             self._track(ctl.phase, check)
             if ctl.phase is None and ctl.pending_steps == 0 and self.t > t_chunk + 0.05:
                 break
