@@ -263,6 +263,7 @@ class WalkingController:
         self._feet = None          # (4, 3) contact points (odom)
         self._body = None          # (x, y, z, yaw, pitch, roll) at rest (odom)
         self._queue: list = []
+        self._queue_in_map = False      # pending footsteps were given in map
         self._plan_t = -np.inf
         self._seg: Optional[_Segment] = None
         self._still_since = -np.inf
@@ -336,6 +337,12 @@ class WalkingController:
         R = T[:3, :3]
         if np.abs(R.T @ R - np.eye(3)).max() > 1e-3 or abs(np.linalg.det(R) - 1.0) > 1e-3:
             raise ValueError('T_map_odom rotation is not orthonormal')
+        if self._queue_in_map and self._queue:
+            # Footsteps given in map stay where they are in the map: the pending ones were
+            # converted with the previous correction; move them by the change.
+            delta = invert(T) @ self.T_map_odom
+            self._queue = [_Step(s.legs, transform_points(delta, s.targets), s.gait)
+                           for s in self._queue]
         self.T_map_odom = T.copy()
 
     def set_footsteps(self, legs: np.ndarray, positions: np.ndarray, gait: str, t: float,
@@ -347,7 +354,9 @@ class WalkingController:
             positions: ``(N, 3)`` contact points [m] in ``frame``.
             gait: 'walk' (one leg at a time), 'trot' (consecutive diagonal pairs) or 'stand'.
             t: time the plan was received / made [s] (for ``plan_timeout_s``).
-            frame: 'odom' or 'map' (converted with the current ``T_map_odom``).
+            frame: 'odom' or 'map' (converted with the current ``T_map_odom``; a later
+                :meth:`apply_correction` moves the pending ones so that they stay at their
+                map positions; the step in progress keeps its target).
 
         Raises ValueError (and keeps the previous plan) on malformed input.
         """
@@ -378,6 +387,7 @@ class WalkingController:
         elif gait == 'walk':
             steps = [_Step((int(lg),), p[None], 'walk') for lg, p in zip(legs, pos)]
         self._queue = steps
+        self._queue_in_map = frame == 'map'
         self._plan_t = float(t)
         self.last_error = ''
 

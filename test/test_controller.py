@@ -148,6 +148,45 @@ def test_map_frame_footsteps_use_the_correction_and_odometry_reanchors():
         ctl.apply_correction(np.full((4, 4), np.nan))
 
 
+def test_pending_map_footsteps_stay_in_the_map_when_a_correction_arrives():
+    # ICP moves T_map_odom mid-plan: the footsteps not yet started keep their map positions
+    # (so they land where the planner chose them), the one in progress keeps its target.
+    m = load_robot_model('littledog')
+    cfg = WalkingConfig(plan_timeout_s=100, touchdown_depth_m=0.0)
+    T_corr = make_T(rot_z(0.02), [0.01, 0.03, 0.0])
+
+    def walk(replan):
+        ctl = WalkingController(m, cfg)
+        ctl.reset(0.0)
+        legs, pos_map = G.straight_footsteps(m, ctl.odom_pose, 0.3)
+        ctl.set_footsteps(legs, pos_map, 'walk', 0.0, frame='map')
+        t = 0.0
+        while ctl.steps_done < 2:
+            ctl.update(t)
+            t += DT
+        pending = ctl.pending_steps          # not started yet
+        replan(ctl, legs, pos_map, pending, t)
+        _run(ctl, t, 60.0)
+        assert ctl.steps_done == len(legs)
+        return ctl, legs, pos_map, pending
+
+    # The reference: the pending footsteps re-sent in odom, converted by hand.
+    ref, legs, pos_map, pending = walk(lambda ctl, legs, pos, n, t: ctl.set_footsteps(
+        legs[-n:], (pos[-n:] - T_corr[:3, 3]) @ T_corr[:3, :3], 'walk', t))
+    ctl, *_ = walk(lambda ctl, legs, pos, n, t: ctl.apply_correction(T_corr))
+    assert pending >= 4
+    np.testing.assert_allclose(ctl.feet, ref.feet, atol=1e-9)
+    # ... so the last footstep of each leg lands at its map position (to the controller's
+    # own placement accuracy, well under the correction's 3 cm).
+    feet_map = ctl.feet @ T_corr[:3, :3].T + T_corr[:3, 3]
+    last = [np.flatnonzero(legs == leg)[-1] for leg in range(4)]
+    assert np.linalg.norm(feet_map - pos_map[last], axis=1).max() < 0.01
+    # Footsteps given in odom do not move with the correction.
+    ctl2, *_ = walk(lambda ctl, legs, pos, n, t: (
+        ctl.set_footsteps(legs[-n:], pos[-n:], 'walk', t), ctl.apply_correction(T_corr)))
+    assert np.linalg.norm(ctl2.feet - pos_map[last], axis=1).max() < 0.01
+
+
 def test_capture_requests_only_when_body_is_still():
     m = load_robot_model('littledog')
     cfg = WalkingConfig(plan_timeout_s=100, still_settle_s=0.1, capture_min_interval_s=0.5)
