@@ -5,7 +5,8 @@ nodes ran); :func:`write_report` turns it into
 
 * ``summary.json``: crossed or not, falls, distance, time, final localisation error, map height
   RMSE on observed cells against the true terrain, mean true cost of the executed (else planned)
-  footholds, capture-to-plan latency, the state of every node, and for each figure and metric
+  footholds, how far the executed footholds are from where the robot's estimate put them at
+  touchdown, capture-to-plan latency, the state of every node, and for each figure and metric
   either its value/file or the reason it is missing (``null`` + ``missing`` entry: never a
   made-up number);
 * ``heightmaps.png``: true vs perceived (``/map/fine``) vs filled (``/map/filled``) heights;
@@ -232,8 +233,10 @@ def true_cost_grid(terrain: GridMap, cost_cfg: CostConfig) -> GridMap:
 
 def executed_footholds(joint_t: np.ndarray, joint_q: np.ndarray, gt_t: np.ndarray,
                        gt_T: np.ndarray, model, speed_mps: float = 0.03,
-                       min_stance_s: float = 0.15, min_move_m: float = 0.01) -> np.ndarray:
-    """Where the feet actually stood: ``(K, 4)`` = leg, x, y, z (contact point, ``map``) [m].
+                       min_stance_s: float = 0.15, min_move_m: float = 0.01,
+                       return_index: bool = False):
+    """Where the feet actually stood: ``(K, 4)`` = leg, x, y, z (contact point, ``map``) [m];
+    with ``return_index`` also the joint-state index of each foothold's touchdown ``(K,)``.
 
     Foot centres from forward kinematics on the joint states and the true base pose; a stance
     is a run of samples with the foot slower than ``speed_mps`` lasting ``min_stance_s``; a new
@@ -242,14 +245,14 @@ def executed_footholds(joint_t: np.ndarray, joint_q: np.ndarray, gt_t: np.ndarra
     """
     from terrain_perception.kinematics import forward
     if len(joint_t) < 3 or len(gt_t) < 3:
-        return np.zeros((0, 4))
+        return (np.zeros((0, 4)), np.zeros(0, int)) if return_index else np.zeros((0, 4))
     T = interp_poses(gt_t, gt_T, joint_t)
     feet_b = forward(model, joint_q)                               # (N, 4, 3)
     feet = np.einsum('nij,nkj->nki', T[:, :3, :3], feet_b) + T[:, None, :3, 3]
     dt = np.gradient(joint_t)
     dt = np.where(dt > 1e-6, dt, 1e-6)
     speed = np.linalg.norm(np.gradient(feet, axis=0), axis=-1) / dt[:, None]   # (N, 4)
-    out = []
+    out, index = [], []
     for leg in range(4):
         still = speed[:, leg] < speed_mps
         last = None
@@ -269,9 +272,33 @@ def executed_footholds(joint_t: np.ndarray, joint_q: np.ndarray, gt_t: np.ndarra
                     last = p          # the initial stance: where the foot was, not a step
                 elif np.linalg.norm(p[:2] - last[:2]) >= min_move_m:
                     out.append([leg, *p])
+                    index.append(k)
                     last = p
             k = j + 1
-    return np.asarray(out, dtype=np.float64).reshape(-1, 4)
+    out = np.asarray(out, dtype=np.float64).reshape(-1, 4)
+    return (out, np.asarray(index, dtype=int)) if return_index else out
+
+
+def foothold_belief_error(d: RunData, model, executed: np.ndarray,
+                          index: np.ndarray) -> np.ndarray:
+    """How far each executed foothold (:func:`executed_footholds`) is from where the robot
+    believed it was at touchdown: the foot from the same joint angles placed with the robot's
+    pose estimate (:func:`estimated_path`: dead reckoning re-anchored by the latest ICP
+    correction) instead of the true pose, ``(K,)`` [m]. The controller puts a foot where its
+    estimate says the planned foothold is, so this is the placement error perception leaves
+    (the ground-truth walks of ``terrain-bench sim`` measure the same, unlocalised and
+    ``--localise``d); a heading error counts at the feet, not just at the body centre."""
+    from terrain_perception.kinematics import forward
+    t_est, T_est, _ = estimated_path(d)
+    if not len(executed) or not len(t_est) or not len(d.gt_t):
+        return np.zeros(0)
+    t = d.joint_t[index]
+    feet_b = forward(model, d.joint_q[index])[np.arange(len(index)), executed[:, 0].astype(int)]
+    T_true = interp_poses(d.gt_t, d.gt_T, t)
+    T_bel = interp_poses(t_est, T_est, t)
+    p_true = np.einsum('nij,nj->ni', T_true[:, :3, :3], feet_b) + T_true[:, :3, 3]
+    p_bel = np.einsum('nij,nj->ni', T_bel[:, :3, :3], feet_b) + T_bel[:, :3, 3]
+    return np.linalg.norm(p_bel - p_true, axis=1)
 
 
 def planned_footholds(plans: List[dict]) -> np.ndarray:
@@ -390,9 +417,19 @@ def compute_summary(d: RunData, model=None, cost_cfg: CostConfig = CostConfig())
         s['filled_rmse_m'] = _finite(rmse)
         s['filled_cells'] = n
     # --- footholds
-    executed = (executed_footholds(d.joint_t, d.joint_q, d.gt_t, d.gt_T, model)
-                if model is not None else np.zeros((0, 4)))
+    executed, index = (executed_footholds(d.joint_t, d.joint_q, d.gt_t, d.gt_T, model,
+                                          return_index=True)
+                       if model is not None else (np.zeros((0, 4)), np.zeros(0, int)))
     committed = committed_footholds(d.plans)
+    belief = foothold_belief_error(d, model, executed, index) if model is not None else []
+    if len(belief):
+        s['foothold_belief_error_m_mean'] = round(float(np.mean(belief)), 5)
+        s['foothold_belief_error_m_p95'] = round(float(np.percentile(belief, 95)), 5)
+    else:
+        s['foothold_belief_error_m_mean'] = None
+        missing['foothold_belief_error_m_mean'] = (
+            'no robot model' if model is None else 'no executed footholds' if not len(executed)
+            else 'no pose estimate (/odom/dead_reckoning, /icp/pose)')
     s['plans_received'] = len(d.plans)
     s['plans_ok'] = int(sum(1 for p in d.plans if len(p['steps'])))
     s['executed_footholds'] = int(len(executed))
@@ -712,7 +749,10 @@ def format_summary(s: dict) -> str:
         f'{100 * (s.get("map_cells_off_by_5cm") or 0):.1f}% off by > 5 cm)',
         f'  footholds      mean true cost {f("mean_true_foothold_cost", "{:.4f}")} '
         f'({s.get("foothold_cost_source", "-")}); plans {s.get("plans_ok")}/'
-        f'{s.get("plans_received")} with steps',
+        f'{s.get("plans_received")} with steps; believed vs true at touchdown '
+        f'{f("foothold_belief_error_m_mean", "{:.4f}", " m")} mean'
+        + (f', {s["foothold_belief_error_m_p95"]:.4f} m p95'
+           if s.get('foothold_belief_error_m_p95') is not None else ''),
         f'  latency        capture-to-plan median '
         f'{f("capture_to_plan_ms_median", "{:.0f}", " ms")}'
         + (' (' + ', '.join(f'{k} {v["median"]:.0f}'

@@ -69,6 +69,42 @@ def test_summary_reports_the_heading_error_a_slip_leaves():
     assert 'heading 11.0 deg (max 179.0 deg)' in format_summary(s)
 
 
+def test_summary_reports_where_the_estimate_put_the_feet_at_touchdown():
+    # The body stands 0.5 s, moves 5 cm, stands ... with the legs fixed: each stand is a
+    # foothold of every leg. The estimate is 2 cm off in y until an ICP correction at t = 4 s
+    # fixes it; a heading error of 2 deg then moves the feet by their lever arm.
+    from terrain_perception.kinematics import forward, standing_joint_angles
+    from terrain_perception.robot_model import load_robot_model
+    model = load_robot_model('littledog')
+    q = standing_joint_angles(model)
+    d = RunData(CourseInfo('rocks-6cm', 0, 0.4, 1.0, 1.75, 2.15), 'littledog')
+    t = np.arange(0.0, 8.0, 0.01)
+    x = 0.4 + 0.05 * np.clip(np.floor(t) + 2.0 * (t % 1.0) - 1.0, np.floor(t), None)
+    d.gt_t, d.gt_T = t, np.stack([_pose(xi, 0.0, 0.0) for xi in x])
+    d.joint_t, d.joint_q = t, np.repeat(q[None], len(t), axis=0)
+    d.dr_t = t
+    d.dr_T = np.stack([_pose(xi, 0.02, 0.0) for xi in x])
+    d.corr_t, d.corr_T = np.array([4.0]), _pose(0.0, -0.02, 0.0)[None]
+    s = compute_summary(d, model)
+    assert s['executed_footholds'] == 4 * 7          # stands 1..7 after the initial one
+    # 12 footholds before the correction (2 cm off), 16 after (exact)
+    assert s['foothold_belief_error_m_mean'] == pytest.approx(0.02 * 12 / 28, abs=1e-5)
+    assert s['foothold_belief_error_m_p95'] == pytest.approx(0.02, abs=1e-5)
+    assert 'believed vs true at touchdown 0.0086 m mean' in format_summary(s)
+    # After the correction the estimate's heading is 2 deg off (the position exact): each foot
+    # is off by its lever arm from the base centre, 2 sin(1 deg) |p_xy|.
+    d.dr_T[t >= 4.0] = [_pose(xi, 0.02, 2.0) for xi in x[t >= 4.0]]
+    arm = 2.0 * np.sin(np.radians(1.0)) * np.linalg.norm(forward(model, q)[:, :2], axis=1)
+    s = compute_summary(d, model)
+    assert s['foothold_belief_error_m_mean'] == pytest.approx(
+        (0.02 * 12 + 4 * arm.sum()) / 28, abs=1e-5)
+    d.dr_t = np.zeros(0)
+    d.dr_T = np.zeros((0, 4, 4))
+    s = compute_summary(d, model)
+    assert s['foothold_belief_error_m_mean'] is None
+    assert 'no pose estimate' in s['missing']['foothold_belief_error_m_mean']
+
+
 def test_the_summary_of_a_run_that_crossed_is_written_as_json():
     """Run AB lost its report: a numpy bool in the summary (crossed, computed from the first
     crossing and the first fall) was not JSON-serialisable. Any flag numpy computes must be
