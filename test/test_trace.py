@@ -97,7 +97,7 @@ def test_bad_trace_input_is_named():
 
 
 @pytest.mark.timeout(180)
-def test_a_localised_rocks_walk_lands_the_feet_where_planned():
+def test_a_localised_rocks_walk_lands_the_feet_where_planned(tmp_path):
     # The ground-truth rocks walk without localisation plans on the true terrain from the
     # controller's dead reckoning, which drifts as the feet slip; localised, it is re-anchored
     # before each plan with the correction a perfect ICP would give (as the closed loop does
@@ -106,8 +106,20 @@ def test_a_localised_rocks_walk_lands_the_feet_where_planned():
     from terrain_perception.bench.sim import _rocks_walk
     from terrain_perception.terrain import make_course
     course = make_course('rocks-6cm', 13, 0.005)
-    drift, fixed = (_rocks_walk(course, 0.8, 1.3, 13, localise=loc) for loc in (False, True))
+    drift, fixed = (_rocks_walk(course, 0.8, 1.3, 13, localise=loc,
+                                trace_path=tmp_path / f'{loc}.npz') for loc in (False, True))
     for r in (drift, fixed):
         assert not r['fell'] and r['reached'] and r['steps'] >= 20, r['status']
     assert fixed['foot_err_mean_m'] < 0.5 * drift['foot_err_mean_m']
     assert fixed['foot_err_p95_m'] < 0.005
+    # The trace puts the controller's belief in the map (its T_map_odom), so localised its
+    # stance feet are where the true ones are; unlocalised the drift shows (measured: p90
+    # of the loaded stance feet's x-y offset 3.0 mm localised, 7.5 mm unlocalised).
+    off = {}
+    for loc in (False, True):
+        a = load_trace(tmp_path / f'{loc}.npz')
+        stance = ~a['swing_legs'] & (a['force'] > 1.0)
+        off[loc] = np.linalg.norm(a['feet'][..., :2] - a['believed_feet'][..., :2],
+                                  axis=-1)[stance]
+    p90 = {loc: float(np.percentile(o, 90)) for loc, o in off.items()}
+    assert p90[True] < 0.005 and p90[False] > 2.0 * p90[True], p90

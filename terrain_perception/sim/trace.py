@@ -2,8 +2,8 @@
 
 A ground-truth walk that falls is deterministic, so the way to learn why is to record it: the
 simulator's truth (base pose, whole-robot COM, foot centres, the normal force on each foot)
-next to what the controller believed and did (its phase, its stance feet in odom, its
-torque-based foot-force estimates, its body target). :class:`WalkTrace` records that every
+next to what the controller believed and did (its phase, its stance feet and body target
+put in the map with its ``T_map_odom``, its torque-based foot-force estimates). :class:`WalkTrace` records that every
 ``every`` physics steps of a :class:`terrain_perception.sim.walk.WalkRunner`;
 :func:`fall_report` reads a trace (or its ``.npz``) and says when the robot fell, when the COM
 left the polygon of the feet that really carried it, and which stance feet hung in the air
@@ -22,6 +22,7 @@ import numpy as np
 
 from terrain_perception import gait as gaitlib
 from terrain_perception.robot_model import LEG_NAMES
+from terrain_perception.transforms import transform_points
 
 #: Phase codes of the ``phase`` column.
 PHASES = ('stand', 'shift', 'swing', 'probe')
@@ -65,16 +66,18 @@ class WalkTrace:
         r['phase'].append(0 if ph is None else PHASES.index(ph.kind))
         r['swing_legs'].append(legs)
         r['steps_done'].append(controller.steps_done)
-        r['believed_feet'].append(np.full((4, 3), np.nan) if feet is None else feet)
+        r['believed_feet'].append(np.full((4, 3), np.nan) if feet is None
+                                  else transform_points(controller.T_map_odom, feet))
         r['force_estimate'].append(np.asarray(controller.foot_loads, float))
-        r['body_target'].append(controller.odom_pose[:3, 3])
+        r['body_target'].append(controller.map_pose[:3, 3])
 
     def __len__(self) -> int:
         return len(self._rows['t'])
 
     def arrays(self) -> dict:
         """Columns as arrays: t (n,), base_xyz, base_rpy [rad], com (n, 3); feet (foot-sphere
-        centres), believed_feet (controller's stance contact points, odom = world) (n, 4, 3);
+        centres), believed_feet (controller's stance contact points, in the map: its
+        ``T_map_odom`` applied) (n, 4, 3);
         force (true normal force), force_estimate (n, 4) [N]; phase (n,) index into
         :data:`PHASES`; swing_legs (n, 4) bool; steps_done (n,); body_target (n, 3)."""
         shapes = {'feet': (4, 3), 'believed_feet': (4, 3), 'force': (4,),
