@@ -142,6 +142,13 @@ class WalkingConfig:
         'the next body shift moves the COM over it (0 = off) [m/s]', 0.0, 1.0)
     max_stance_extend_m: float = param(0.01, 'Largest such lowering of a foot between two of '
                                        'its swings [m]', 0.0, 0.1)
+    touchdown_verify_s: float = param(
+        0.05, 'After a swing that a touchdown ended more than max_stance_extend_m above its '
+        'foothold, the body holds still this long, then a swung foot that reads hanging '
+        '(below hanging_force_n) is probed down to its foothold and probe_depth_m beyond, '
+        'before the next body shift moves the COM over it: a swing foot that decelerates near '
+        'its apex loads its motors like a contact and can end its swing there, centimetres '
+        'above the ground (0 = off) [s]', 0.0, 1.0)
     attitude_gain: float = param(0.7, 'Share of the measured body tilt (IMU) that each body '
                                  'shift corrects by re-estimating the stance feet heights and '
                                  'changing the legs\' lengths (0 = level-body open loop) [-]',
@@ -286,8 +293,9 @@ class WalkingController:
         self._q_meas: Optional[np.ndarray] = None
         self._loaded: Optional[np.ndarray] = None   # (4,) bool, None without torques
         self._probe_legs: tuple = ()
+        self._verify = None     # (legs, until [s], extra depth (4,)) after a swing
         self.touchdowns = {'early': 0, 'probed': 0, 'not_found': 0, 'reanchored': 0,
-                           'extended': 0}
+                           'extended': 0, 'hanging_after_swing': 0}
         self._reanchor_checked = None   # stance last checked by _reanchor_feet
         self._R_tilt: Optional[np.ndarray] = None   # measured base tilt (yaw removed)
         self._dry = False          # check_footsteps: segments without joint splines
@@ -316,6 +324,7 @@ class WalkingController:
         self._body = np.array([T[0, 3], T[1, 3], T[2, 3], yaw, 0.0, 0.0])
         self._seg = None
         self._pending_swing = None
+        self._verify = None
         self._extend = np.zeros(4)
         self._extend_sum = np.zeros(4)
         self._recentred_at = -1
@@ -733,9 +742,41 @@ class WalkingController:
         self._phi_ref = _shank_angles(self._q_last.reshape(4, 3))
         if seg.kind == 'swing':
             self.steps_done += len(seg.legs)
+            self._schedule_verify(seg, t)
         elif seg.kind == 'probe':
             self.touchdowns['probed'] += 1
         self._schedule_probes(seg)
+
+    def _schedule_verify(self, seg: _Segment, t: float) -> None:
+        """After a swing cut by a touchdown more than ``max_stance_extend_m`` above its
+        foothold (further than lowering a hanging stance foot reaches): check the swung feet
+        once the body has held still ``touchdown_verify_s`` (:meth:`_next_segment`); a foot
+        that hangs may have to go down that much further.
+
+        Swings run to their end are not checked: a foot that has just landed carries little
+        and can read below ``hanging_force_n`` while it touches (flat ground: 4 probes in 12
+        steps, each pressing a foot into the ground, the body rising against the believed
+        heights until a swing passed over a 2 cm slab under its foothold)."""
+        c = self.config
+        if c.touchdown_verify_s <= 0.0 or self._loaded is None:
+            return
+        extra = np.maximum(self._feet[:, 2] - seg.feet_end[:, 2], 0.0)
+        if extra[list(seg.legs)].max() <= c.max_stance_extend_m:
+            return
+        self._verify = (tuple(seg.legs), t + c.touchdown_verify_s, extra)
+
+    def _verified_probe(self, t0: float):
+        """None while the body holds still after a swing, then a probe of the swung feet
+        that hang (or False: nothing to probe)."""
+        legs, until, extra = self._verify
+        if t0 < until:
+            return None
+        self._verify = None
+        hanging = tuple(k for k in legs if self._hanging_count[k] >= self.config.contact_ticks)
+        if not hanging:
+            return False
+        self.touchdowns['hanging_after_swing'] += 1
+        return self._make_probe(hanging, t0, float(extra[list(hanging)].max())) or False
 
     def _schedule_probes(self, seg: _Segment) -> None:
         """Before a swing (the body has shifted) the other three feet must carry weight.
@@ -753,14 +794,15 @@ class WalkingController:
                                      and not self._supporting[k])
 
 
-    def _make_probe(self, legs: tuple, t0: float) -> Optional[_Segment]:
-        """Lower ``legs`` slowly (body still) by up to ``probe_depth_m``; shallower if the
-        full depth is out of reach."""
+    def _make_probe(self, legs: tuple, t0: float, extra_m: float = 0.0) -> Optional[_Segment]:
+        """Lower ``legs`` slowly (body still) by up to ``probe_depth_m`` (plus ``extra_m``);
+        shallower if the full depth is out of reach."""
         c = self.config
         feet0, body = self._feet.copy(), self._body.copy()
         rolling = np.ones(4, dtype=bool)
         rolling[list(legs)] = False
-        for depth in (c.probe_depth_m, 0.6 * c.probe_depth_m, 0.3 * c.probe_depth_m):
+        for depth in (extra_m + c.probe_depth_m, extra_m + 0.6 * c.probe_depth_m,
+                      extra_m + 0.3 * c.probe_depth_m):
             dur = max(depth / c.probe_speed_m_s, 2.0 * c.knot_dt_s)
 
             def feet_fn(tau, depth=depth, dur=dur):
@@ -835,6 +877,12 @@ class WalkingController:
     def _next_segment(self, t0: float) -> Optional[_Segment]:
         self._absorb_extension()
         self._reanchor_feet()
+        if self._verify is not None:
+            seg = self._verified_probe(t0)
+            if seg is None:
+                return None          # holding still: is the swung foot on the ground?
+            if seg is not False:
+                return seg
         if self._probe_legs:
             legs, self._probe_legs = self._probe_legs, ()
             seg = self._make_probe(legs, t0)

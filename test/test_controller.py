@@ -13,7 +13,7 @@ from terrain_perception import kinematics as K
 from terrain_perception.controller import (WalkingConfig, WalkingController, _shank_angles,
                                            check_footsteps)
 from terrain_perception.robot_model import load_robot_model
-from terrain_perception.transforms import make_T, rot_z
+from terrain_perception.transforms import make_T, rot_z, transform_points
 
 DT = 0.01
 
@@ -626,3 +626,48 @@ def test_a_hanging_stance_foot_is_lowered_until_it_touches():
     # off: nothing moves
     ctl, z, _ = run(0.0, 10.0, walk=False)
     assert np.abs(z[0] - z).max() < 1e-9 and ctl.touchdowns['extended'] == 0
+
+
+def test_a_swing_cut_in_the_air_is_checked_and_the_foot_probed_down():
+    # Near the end of LF's swing its motors read a load for a few ticks (a swing foot that
+    # decelerates loads them like a contact; seen on rocks, 3.2 N at 37 mm above the
+    # foothold): the swing ends there. Then the foot reads its own weight, hanging. With
+    # touchdown_verify_s the body holds still, sees it hang and probes the foot down until
+    # it touches the ground; without, the controller believes the foot stands in mid-air.
+    m = load_robot_model('littledog')
+
+    def step(verify_s):
+        cfg = WalkingConfig(plan_timeout_s=1e3, touchdown_verify_s=verify_s,
+                            stance_extend_m_s=0.0, touchdown_depth_m=0.0)
+        ctl = WalkingController(m, cfg)
+        ctl.reset(0.0, None, make_T(np.eye(3), [0.0, 0.0, m.standing_height_m]))
+        q, t = K.standing_joint_angles(m).reshape(12), 0.0
+        f0 = ctl.feet[0]
+        ctl.set_footsteps([0], [[f0[0] + 0.06, f0[1], 0.0]], 'walk', 0.0)
+        cut_above, probed = None, False
+        while t < 3.0:
+            ph = ctl.phase
+            foot = transform_points(ctl.odom_pose, K.forward(m, q.reshape(4, 3)))[0]
+            lf_z = foot[2] - m.foot_radius_m
+            fz = np.array([-0.8, 7.0, 7.0, 7.0])
+            if ph is not None and ph.kind == 'swing' and 0 in ph.legs:
+                frac = (t - ph.t0) / ph.duration
+                if 0.8 <= frac <= 0.9:
+                    fz[0] = 3.0                 # the spurious load
+            elif lf_z <= 0.0005:
+                fz[0] = 3.0                     # on the ground
+            probed |= ph is not None and ph.kind == 'probe'
+            was_swing = ph is not None and ph.kind == 'swing'
+            q = ctl.update(t, q, np.zeros(12), _torques_for(m, q, fz)).positions
+            if was_swing and (ctl.phase is None or ctl.phase.kind != 'swing'):
+                cut_above = ctl.feet[0, 2]
+            t += DT
+        return ctl, cut_above, probed
+
+    ctl, cut_above, probed = step(0.05)
+    assert ctl.touchdowns['early'] == 1 and cut_above > 0.01       # cut in the air
+    assert probed and ctl.touchdowns['hanging_after_swing'] == 1
+    assert abs(ctl.feet[0, 2]) < 0.002 and ctl.steps_done == 1     # found the ground
+    blind, cut_above, probed = step(0.0)
+    assert blind.touchdowns['early'] == 1 and not probed
+    assert blind.feet[0, 2] > 0.01                                  # believed in mid-air

@@ -9,7 +9,9 @@
   its footstep.
 * Walking over ``rocks-6cm`` (LittleDog-like) with ground-truth footsteps: the project's
   footstep planner on the true height map, replanned from the true pose and feet after every
-  executed horizon (blind to perception, to separate control from perception); baseline in
+  executed horizon (blind to perception, to separate control from perception), the
+  controller's dead reckoning re-anchored before each plan with the correction a perfect ICP
+  would give (``--no-localise``: not at all, as before the nineteenth session); baseline in
   the same run: the controller without touchdown sensing and IMU levelling (open loop).
 
 JSON keys: rtf_littledog, rtf_frog (native camera resolution, cameras on), foot_err_flat_m,
@@ -49,11 +51,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         '{"shift_zmp_offset_m": 0.008}}\' (a third row, "variant")')
     parser.add_argument('--rocks-only', action='store_true',
                         help='only the rocks walks (no real-time factor and flat walks)')
-    parser.add_argument('--localise', action='store_true',
-                        help='re-anchor the rocks walks\' dead reckoning before each plan with '
-                        'the correction a perfect ICP would give (T_map_odom from the true base '
-                        'pose), as the closed loop does with its ICP; without it the drift of '
-                        'the slipping feet goes uncorrected (odom = world)')
+    parser.add_argument('--no-localise', action='store_true',
+                        help='do not re-anchor the rocks walks\' dead reckoning: by default it '
+                        'is, before each plan, with the correction a perfect ICP would give '
+                        '(T_map_odom from the true base pose), as the closed loop does with its '
+                        'ICP; without, the drift of the slipping feet goes uncorrected (odom = '
+                        'world: the walks before the nineteenth session)')
     parser.add_argument('--trace', type=str, default='', metavar='DIR',
                         help='trace every rocks walk (the truth and the controller\'s belief '
                         'every 10 ms) to DIR/rocks6-seed<S>[-<row>].npz and print how each '
@@ -303,7 +306,7 @@ def _rocks_seeds(n: int, start_x: float, goal_x: float, first: int = 0,
               f'{summary[name]["falls"]}, mean advance {summary[name]["advanced_m_mean"]:.2f} m'
               + (f', crossing time median {t:.0f} s sim' if t is not None else ''))
     _print_fall_reports((name, r) for name, rs in rows.items() for r in rs)
-    return {'rocks6_seeds': summary, 'rocks6_seed_rows': rows}
+    return {'rocks6_seeds': summary, 'rocks6_seed_rows': rows, 'rocks_localised': localise}
 
 
 def run(args: argparse.Namespace) -> dict:
@@ -313,7 +316,7 @@ def run(args: argparse.Namespace) -> dict:
     n_rocks = int(getattr(args, 'rocks_seeds', 0) or 0)
     variant = parse_rocks_variant(getattr(args, 'rocks_variant', '') or '')
     trace_dir = str(getattr(args, 'trace', '') or '')
-    localise = bool(getattr(args, 'localise', False))
+    localise = not bool(getattr(args, 'no_localise', False))
     if getattr(args, 'rocks_only', False):
         if n_rocks <= 0:
             raise ValueError('--rocks-only needs --rocks-seeds N (N >= 1)')
@@ -345,7 +348,7 @@ def run(args: argparse.Namespace) -> dict:
                         trace_path=_trace_path(trace_dir, seed), localise=localise)
     # baseline: the same controller without touchdown sensing and levelling (open loop)
     rocks_blind = _rocks_walk(course, 0.8 if quick else 0.4, 1.3 if quick else 2.4, seed,
-                              sensing=False)
+                              sensing=False, localise=localise)
     print('\nWalking (controller at every physics step, ground truth from the simulator)')
     print(f'{"case":<22} {"dist m":>7} {"sim s":>7} {"speed m/s":>10} {"foot err mean":>14} '
           f'{"p95":>7} {"end err":>8} {"fell":>5} {"RTF":>5}')
@@ -379,6 +382,7 @@ def run(args: argparse.Namespace) -> dict:
         'rocks6_advanced_m': rocks['advanced_m'],
         'rocks6_open_loop_advanced_m': rocks_blind['advanced_m'],
         'quick': quick,
+        'rocks_localised': localise,
     }
     if n_rocks > 0:
         out.update(_rocks_seeds(n_rocks, 0.4, 2.4, int(getattr(args, 'rocks_first_seed', 0)),
