@@ -19,9 +19,11 @@ Each segment's Cartesian motion is sampled at ``knot_dt_s``, converted by IK and
 with a clamped ``scipy.interpolate.CubicSpline`` in joint space.
 
 With joint torques, each foot's ground force is estimated (no foot sensors): a swing that meets
-the ground early ends there, a stance foot that should carry weight before a swing but does not
-is probed down, and a stance foot that hangs (reads its own leg's weight) is lowered slowly
-until it touches, so no body shift tips the robot over the diagonal of the other two.
+the ground early ends there (and, if that was centimetres above its foothold, the foot is
+checked after a short hold and probed down if it hangs), a stance foot that should carry weight
+before a swing but does not is probed down, and a stance foot that hangs (reads its own leg's
+weight) is lowered slowly until it touches, so no body shift tips the robot over the diagonal of
+the other two.
 
 Frames: footsteps, feet and the body pose live in ``odom`` (the dead-reckoning frame);
 ``T_map_odom`` (from ICP) converts plans given in ``map``. Time is passed in [s]; the core
