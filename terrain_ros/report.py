@@ -422,6 +422,12 @@ def compute_summary(d: RunData, model=None, cost_cfg: CostConfig = CostConfig())
                        if model is not None else (np.zeros((0, 4)), np.zeros(0, int)))
     committed = committed_footholds(d.plans)
     belief = foothold_belief_error(d, model, executed, index) if model is not None else []
+    if len(belief) and len(d.gt_t):
+        # Before the robot fell (a tipping robot's feet are not footholds; it tips in ~0.4 s)
+        fallen = fall_mask(d.gt_T, d.true_terrain, body)
+        if fallen.any():
+            belief = belief[d.joint_t[index] < d.gt_t[np.argmax(fallen)] - 0.5]
+    s['foothold_belief_error_footholds'] = int(len(belief))
     if len(belief):
         s['foothold_belief_error_m_mean'] = round(float(np.mean(belief)), 5)
         s['foothold_belief_error_m_p95'] = round(float(np.percentile(belief, 95)), 5)
@@ -429,7 +435,9 @@ def compute_summary(d: RunData, model=None, cost_cfg: CostConfig = CostConfig())
         s['foothold_belief_error_m_mean'] = None
         missing['foothold_belief_error_m_mean'] = (
             'no robot model' if model is None else 'no executed footholds' if not len(executed)
-            else 'no pose estimate (/odom/dead_reckoning, /icp/pose)')
+            else 'no pose estimate (/odom/dead_reckoning, /icp/pose)'
+            if not len(estimated_path(d)[0]) or not len(d.gt_t)
+            else 'no executed foothold before the fall')
     s['plans_received'] = len(d.plans)
     s['plans_ok'] = int(sum(1 for p in d.plans if len(p['steps'])))
     s['executed_footholds'] = int(len(executed))

@@ -98,6 +98,11 @@ def test_summary_reports_where_the_estimate_put_the_feet_at_touchdown():
     s = compute_summary(d, model)
     assert s['foothold_belief_error_m_mean'] == pytest.approx(
         (0.02 * 12 + 4 * arm.sum()) / 28, abs=1e-5)
+    assert s['foothold_belief_error_footholds'] == 28
+    # The robot tips over at 7.3 s: footholds from 0.5 s before are not counted (the 7th stand).
+    d.gt_T[t >= 7.3] = [_pitched(xi, 90.0) for xi in x[t >= 7.3]]
+    s = compute_summary(d, model)
+    assert s['falls'] == 1 and s['foothold_belief_error_footholds'] == 24
     d.dr_t = np.zeros(0)
     d.dr_T = np.zeros((0, 4, 4))
     s = compute_summary(d, model)
