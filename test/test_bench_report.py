@@ -44,3 +44,21 @@ def test_sim_rocks_variant_is_parsed_and_bad_ones_refused_by_name(capsys):
         rc = runner.main(['sim', '--rocks-only', '--rocks-seeds', '1', '--rocks-variant', text])
         assert rc == 2
         assert words in capsys.readouterr().err
+
+
+def test_closed_loop_trials_record_a_bag_only_when_asked():
+    import argparse
+    from pathlib import Path
+    from terrain_perception.bench import closed_loop
+    p = argparse.ArgumentParser()
+    closed_loop.add_arguments(p)
+    for argv, bag in (([], False), (['--bag'], True)):
+        args = p.parse_args(argv + ['--front-gap', '0.3'])
+        cmd = closed_loop.trial_command(args, 'rocks-6cm', 'littledog', 'full', 118,
+                                        Path('/tmp/x/seed118'))
+        assert ('--no-bag' not in cmd) == bag
+        assert cmd[cmd.index('--seed') + 1] == '118'
+        assert cmd[cmd.index('--run-dir') + 1] == '/tmp/x/seed118'
+        start = float(cmd[cmd.index('--arg') + 1].split(':=')[1])
+        # front feet 0.3 m before the rough section (rocks-6cm: x = 1.0 m)
+        assert 0.55 < start < 0.65

@@ -62,6 +62,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         'a short gap saves the flat walk in a reduced run)')
     p.add_argument('--out', type=Path, default=None,
                    help='folder for the trials\' run directories (default runs/bench-<date>)')
+    p.add_argument('--bag', action='store_true',
+                   help='record every trial\'s topics to its run directory (to replay or trace '
+                        'a fall afterwards; the recorder shares the cores: capture-to-plan '
+                        '~60 ms slower, see the latency suite)')
 
 
 def _start_x(course: str, robot: str, front_gap) -> 'float | None':
@@ -74,15 +78,24 @@ def _start_x(course: str, robot: str, front_gap) -> 'float | None':
     return COURSE_CLASSES[course].approach_m - front - float(front_gap)
 
 
-def _trial(args, course: str, robot: str, variant: str, seed: int, out: Path) -> dict:
-    run_dir = out / course / variant / f'seed{seed}'
+def trial_command(args, course: str, robot: str, variant: str, seed: int,
+                  run_dir: Path) -> list:
+    """The ``terrain-demo`` command line of one trial."""
     cmd = [str(Path(sys.executable).parent / 'terrain-demo'), '--robot', robot,
-           '--course', course, '--seed', str(seed), '--run-dir', str(run_dir), '--no-bag',
+           '--course', course, '--seed', str(seed), '--run-dir', str(run_dir),
+           *([] if getattr(args, 'bag', False) else ['--no-bag']),
            '--quiet', '--max-sim-time', str(args.max_sim_time), '--timeout', str(args.timeout),
            '--image-scale', str(args.image_scale), *VARIANTS[variant]]
     start_x = _start_x(course, robot, args.front_gap)
     if start_x is not None:
         cmd += ['--arg', f'start_x:={start_x:.3f}']
+    return cmd
+
+
+def _trial(args, course: str, robot: str, variant: str, seed: int, out: Path) -> dict:
+    run_dir = out / course / variant / f'seed{seed}'
+    cmd = trial_command(args, course, robot, variant, seed, run_dir)
+    start_x = _start_x(course, robot, args.front_gap)
     t0 = time.monotonic()
     proc = subprocess.run(cmd, capture_output=True, text=True, env=dict(os.environ),
                           timeout=args.timeout + 300)
