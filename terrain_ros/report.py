@@ -279,17 +279,16 @@ def executed_footholds(joint_t: np.ndarray, joint_q: np.ndarray, gt_t: np.ndarra
     return (out, np.asarray(index, dtype=int)) if return_index else out
 
 
-def foothold_belief_error(d: RunData, model, executed: np.ndarray,
-                          index: np.ndarray) -> np.ndarray:
+def foothold_belief_error(d: RunData, model, executed: np.ndarray, index: np.ndarray,
+                          t_est: np.ndarray, T_est: np.ndarray) -> np.ndarray:
     """How far each executed foothold (:func:`executed_footholds`) is from where the robot
     believed it was at touchdown: the foot from the same joint angles placed with the robot's
-    pose estimate (:func:`estimated_path`: dead reckoning re-anchored by the latest ICP
-    correction) instead of the true pose, ``(K,)`` [m]. The controller puts a foot where its
-    estimate says the planned foothold is, so this is the placement error perception leaves
-    (the ground-truth walks of ``terrain-bench sim`` measure the same, unlocalised and
-    ``--localise``d); a heading error counts at the feet, not just at the body centre."""
+    pose estimate ``t_est``, ``T_est`` (:func:`estimated_path`: dead reckoning re-anchored by
+    the latest ICP correction) instead of the true pose, ``(K,)`` [m]. The controller puts a
+    foot where its estimate says the planned foothold is, so this is the placement error
+    perception leaves (the ground-truth walks of ``terrain-bench sim`` measure the same,
+    localised or not); a heading error counts at the feet, not just at the body centre."""
     from terrain_perception.kinematics import forward
-    t_est, T_est, _ = estimated_path(d)
     if not len(executed) or not len(t_est) or not len(d.gt_t):
         return np.zeros(0)
     t = d.joint_t[index]
@@ -343,6 +342,7 @@ def compute_summary(d: RunData, model=None, cost_cfg: CostConfig = CostConfig())
     }
     body = (model.body_size_m if model is not None else np.array([0.24, 0.10, 0.06]))
     # --- motion (ground truth)
+    fallen = np.zeros(0, bool)
     if len(d.gt_t):
         x = d.gt_T[:, 0, 3]
         fallen = fall_mask(d.gt_T, d.true_terrain, body)
@@ -421,12 +421,11 @@ def compute_summary(d: RunData, model=None, cost_cfg: CostConfig = CostConfig())
                                           return_index=True)
                        if model is not None else (np.zeros((0, 4)), np.zeros(0, int)))
     committed = committed_footholds(d.plans)
-    belief = foothold_belief_error(d, model, executed, index) if model is not None else []
-    if len(belief) and len(d.gt_t):
+    belief = (foothold_belief_error(d, model, executed, index, t_est, T_est)
+              if model is not None else [])
+    if len(belief) and fallen.any():
         # Before the robot fell (a tipping robot's feet are not footholds; it tips in ~0.4 s)
-        fallen = fall_mask(d.gt_T, d.true_terrain, body)
-        if fallen.any():
-            belief = belief[d.joint_t[index] < d.gt_t[np.argmax(fallen)] - 0.5]
+        belief = belief[d.joint_t[index] < d.gt_t[np.argmax(fallen)] - 0.5]
     s['foothold_belief_error_footholds'] = int(len(belief))
     if len(belief):
         s['foothold_belief_error_m_mean'] = round(float(np.mean(belief)), 5)
@@ -436,7 +435,7 @@ def compute_summary(d: RunData, model=None, cost_cfg: CostConfig = CostConfig())
         missing['foothold_belief_error_m_mean'] = (
             'no robot model' if model is None else 'no executed footholds' if not len(executed)
             else 'no pose estimate (/odom/dead_reckoning, /icp/pose)'
-            if not len(estimated_path(d)[0]) or not len(d.gt_t)
+            if not len(t_est) or not len(d.gt_t)
             else 'no executed foothold before the fall')
     s['plans_received'] = len(d.plans)
     s['plans_ok'] = int(sum(1 for p in d.plans if len(p['steps'])))

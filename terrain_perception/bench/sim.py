@@ -112,7 +112,7 @@ def _flat_walk(robot: str, distance_m: float, gait: str = 'walk') -> dict:
 
 def _rocks_walk(course, start_x: float, goal_x: float, seed: int, sensing: bool = True,
                 planner_kw: Optional[dict] = None, walking_kw: Optional[dict] = None,
-                trace_path=None, localise: bool = False) -> dict:
+                trace_path=None, localise: bool = True) -> dict:
     """LittleDog walks ``course`` from ``start_x`` towards ``goal_x`` on footsteps planned on
     the true terrain (receding horizon, every plan dry-run through the controller's checks).
     ``planner_kw``/``walking_kw`` override :class:`PlannerConfig`/:class:`WalkingConfig`
@@ -257,7 +257,7 @@ def _print_fall_reports(walks) -> None:
 
 def _rocks_seeds(n: int, start_x: float, goal_x: float, first: int = 0,
                  variant: Optional[dict] = None, trace_dir: str = '',
-                 localise: bool = False) -> dict:
+                 localise: bool = True) -> dict:
     """The ground-truth-footstep rocks walk on seeds first..first+n-1, defaults against the
     baseline (and a variant of the defaults, if given); traced to ``trace_dir`` if given,
     localised (:func:`_rocks_walk`) if asked."""

@@ -3,8 +3,9 @@
 A ground-truth walk that falls is deterministic, so the way to learn why is to record it: the
 simulator's truth (base pose, whole-robot COM, foot centres, the normal force on each foot)
 next to what the controller believed and did (its phase, its stance feet and body target
-put in the map with its ``T_map_odom``, its torque-based foot-force estimates). :class:`WalkTrace` records that every
-``every`` physics steps of a :class:`terrain_perception.sim.walk.WalkRunner`;
+put in the map with its ``T_map_odom``, its torque-based foot-force estimates).
+:class:`WalkTrace` records that every ``every`` physics steps of a
+:class:`terrain_perception.sim.walk.WalkRunner`;
 :func:`fall_report` reads a trace (or its ``.npz``) and says when the robot fell, when the COM
 left the polygon of the feet that really carried it, and which stance feet hung in the air
 before (the session-17 mechanism: a foot ending its swing 1-2 mm above the ground, then a body
