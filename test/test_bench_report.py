@@ -62,3 +62,22 @@ def test_closed_loop_trials_record_a_bag_only_when_asked():
         start = float(cmd[cmd.index('--arg') + 1].split(':=')[1])
         # front feet 0.3 m before the rough section (rocks-6cm: x = 1.0 m)
         assert 0.55 < start < 0.65
+
+
+def test_closed_loop_trials_pass_parameter_overrides_to_every_trial(tmp_path, capsys):
+    import argparse
+    from pathlib import Path
+    from terrain_perception.bench import closed_loop, runner
+    p = argparse.ArgumentParser()
+    closed_loop.add_arguments(p)
+    args = p.parse_args(['--param', 'walking_controller:touchdown_verify_s:=0.0',
+                         '--param', 'footstep_planner:horizon:=3'])
+    cmd = closed_loop.trial_command(args, 'rocks-6cm', 'littledog', 'full', 5, Path('/tmp/x'))
+    got = [cmd[i + 1] for i, a in enumerate(cmd) if a == '--param']
+    assert got == ['walking_controller:touchdown_verify_s:=0.0', 'footstep_planner:horizon:=3']
+    # A malformed override is refused before any trial starts (a wrong node name is refused
+    # by terrain-demo against the launch file: test_tools_launch).
+    out = tmp_path / 'never'
+    rc = runner.main(['closed-loop', '--param', 'touchdown_verify_s:=0.0', '--out', str(out)])
+    assert rc == 2 and 'NODE:NAME:=VALUE' in capsys.readouterr().err
+    assert not out.exists()

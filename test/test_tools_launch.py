@@ -184,3 +184,26 @@ def test_demo_recorder_runs_at_its_priority(tmp_path):
             assert Path(f'/proc/{proc.pid}/autogroup').read_text().split()[-1] == '6'
     finally:
         stop_process(proc, signal.SIGINT, 20.0)
+
+
+def test_parameter_overrides_win_over_files_and_name_a_started_node(tmp_path):
+    # --param NODE:NAME:=VALUE is the last -p of that node's command (the last value of a
+    # parameter wins in ROS 2), only that node gets it, and a node the file does not start
+    # or a malformed override is a one-line error.
+    launch = _write_launch(tmp_path)
+    res = subprocess.run([BIN / 'terrain-launch', '--print', launch,
+                          '--param', 'talker_b:word:=override', '--param', 'talker_a:rate:=2.5'],
+                         capture_output=True, text=True, timeout=30)
+    assert res.returncode == 0, res.stderr
+    lines = {ln.split(':', 1)[0]: ln for ln in res.stdout.splitlines()}
+    b = lines['talker_b'].split()
+    ps = [b[i + 1] for i, a in enumerate(b) if a == '-p']
+    assert ps[-1] == 'word:=override' and 'word:=hello' in ps
+    assert 'word:=override' not in lines['talker_a']
+    assert 'rate:=2.5' in lines['talker_a']
+    for bad, words in ((['--param', 'talker_c:word:=x'], "talker_c"),
+                       (['--param', 'word:=x'], 'NODE:NAME:=VALUE')):
+        res = subprocess.run([BIN / 'terrain-launch', '--print', launch, *bad],
+                             capture_output=True, text=True, timeout=30)
+        assert res.returncode != 0 and words in res.stderr, res.stderr
+        assert len(res.stderr.strip().splitlines()) == 1, res.stderr

@@ -62,6 +62,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         'a short gap saves the flat walk in a reduced run)')
     p.add_argument('--out', type=Path, default=None,
                    help='folder for the trials\' run directories (default runs/bench-<date>)')
+    p.add_argument('--param', action='append', default=[], metavar='NODE:NAME:=VALUE',
+                   help='set one node parameter in every trial (repeatable; terrain-demo '
+                        '--param), e.g. walking_controller:touchdown_verify_s:=0.0 for an A/B '
+                        'against the config file')
     p.add_argument('--bag', action='store_true',
                    help='record every trial\'s topics to its run directory (to replay or trace '
                         'a fall afterwards; the recorder shares the cores: capture-to-plan '
@@ -89,6 +93,8 @@ def trial_command(args, course: str, robot: str, variant: str, seed: int,
     start_x = _start_x(course, robot, args.front_gap)
     if start_x is not None:
         cmd += ['--arg', f'start_x:={start_x:.3f}']
+    for text in getattr(args, 'param', None) or []:
+        cmd += ['--param', text]
     return cmd
 
 
@@ -122,6 +128,13 @@ def run(args) -> dict:
     if args.quick:
         args.courses, args.variants, args.seeds = ['rocks-6cm'], ['full'], 1
         args.max_sim_time, args.image_scale = min(args.max_sim_time, 10.0), 0.5
+    for text in getattr(args, 'param', None) or []:
+        # A malformed override fails here, not after the first trial (terrain-demo checks
+        # the node name against the launch file).
+        head, sep, _ = text.partition(':=')
+        if not sep or head.count(':') != 1 or '' in head.split(':'):
+            raise ValueError(f'--param {text!r} is not of the form NODE:NAME:=VALUE '
+                             f'(e.g. walking_controller:touchdown_verify_s:=0.0)')
     out = args.out or Path('runs') / time.strftime('bench-%Y%m%d-%H%M%S')
     out.mkdir(parents=True, exist_ok=True)
     trials = []
@@ -169,4 +182,5 @@ def run(args) -> dict:
             'trials': trials, 'settings': {'seeds': args.seeds, 'first_seed': args.first_seed,
                                            'max_sim_time_s': args.max_sim_time,
                                            'image_scale': args.image_scale,
-                                           'front_gap_m': args.front_gap}}
+                                           'front_gap_m': args.front_gap,
+                                           'params': list(getattr(args, 'param', None) or [])}}

@@ -97,6 +97,9 @@ def _parser() -> argparse.ArgumentParser:
                         '--replay)')
     p.add_argument('--arg', action='append', default=[], metavar='NAME:=VALUE',
                    help='extra launch argument (repeatable)')
+    p.add_argument('--param', action='append', default=[], metavar='NODE:NAME:=VALUE',
+                   help='set one node parameter over its config file (repeatable), e.g. '
+                        'walking_controller:touchdown_verify_s:=0.0')
     p.add_argument('--replay', type=Path, default=None, metavar='BAG',
                    help='play this bag through the perception/planning nodes instead of '
                         'simulating')
@@ -743,7 +746,7 @@ def run(args) -> int:
         cli[k] = v
     if 'start_x' in cli:
         course.start_x_m = float(cli['start_x'])
-    specs = load_launch_file(launch_run, cli) if any(
+    specs = load_launch_file(launch_run, cli, args.param) if any(
         s.get('state') == 'pending' for s in status.values()) else []
     env = dict(safe_env(dict(os.environ)))
     print(f'[{PROG}] run directory {run_dir}', flush=True)

@@ -21,6 +21,9 @@ The launch file (see ``config/launch/*.yaml``)::
         nice: 0                # CPU priority 0-19 (higher yields the CPU to the others)
 
 ``${name}`` is replaced by the argument's value; ``${config}`` by the project's config folder.
+``--param NODE:NAME:=VALUE`` (repeatable) sets one node parameter over its files and inline
+values, e.g. ``--param walking_controller:touchdown_verify_s:=0.0`` to try a value without
+editing ``config/``.
 Ctrl-C (or SIGTERM) is forwarded to every process; a process still running after
 ``--grace`` seconds gets SIGTERM, then SIGKILL. Children die with the launcher even if it is
 killed (PR_SET_PDEATHSIG), so no process is left behind.
@@ -106,8 +109,26 @@ def _find_file(name: str, base: Path) -> Path:
     raise ToolError(f'parameter file {name!r} not found (looked in {base} and {CONFIG_DIR})')
 
 
-def load_launch_file(path: Path, cli_args: Dict[str, str]) -> List[NodeSpec]:
-    """Parse a launch file into node specs (commands, environments)."""
+def parse_param_override(text: str) -> 'tuple[str, str, str]':
+    """``NODE:NAME:=VALUE`` -> (node, name, value)."""
+    head, sep, value = text.partition(':=')
+    node, colon, name = head.partition(':')
+    if not sep or not colon or not node or not name:
+        raise ToolError(f'parameter override {text!r} is not of the form NODE:NAME:=VALUE '
+                        f'(e.g. walking_controller:touchdown_verify_s:=0.0)')
+    return node, name, value
+
+
+def load_launch_file(path: Path, cli_args: Dict[str, str],
+                     param_overrides: 'List[str] | None' = None) -> List[NodeSpec]:
+    """Parse a launch file into node specs (commands, environments).
+
+    ``param_overrides``: ``NODE:NAME:=VALUE`` strings, applied last (they win over the node's
+    parameter files and inline parameters)."""
+    overrides: Dict[str, Dict[str, str]] = {}
+    for text in param_overrides or []:
+        node, name, value = parse_param_override(text)
+        overrides.setdefault(node, {})[name] = value
     if not path.is_file():
         raise ToolError(f'launch file {str(path)!r} does not exist')
     try:
@@ -148,6 +169,12 @@ def load_launch_file(path: Path, cli_args: Dict[str, str]) -> List[NodeSpec]:
             ros += ['--params-file', str(_find_file(f, path.parent))]
         for k, v in (n.get('parameters') or {}).items():
             ros += ['-p', f'{k}:={_param_value(v)}']
+        mine = overrides.pop(name, {})
+        for k, v in mine.items():
+            ros += ['-p', f'{k}:={v}']
+        if mine and not n.get('ros_args', True):
+            raise ToolError(f'node {name!r} takes no ROS arguments (ros_args: false): '
+                            f'cannot set {sorted(mine)}')
         for a, b in (n.get('remappings') or {}).items():
             ros += ['-r', f'{a}:={b}']
         if n.get('ros_args', True):
@@ -161,6 +188,9 @@ def load_launch_file(path: Path, cli_args: Dict[str, str]) -> List[NodeSpec]:
         specs.append(NodeSpec(name, cmd, env, bool(n.get('respawn', False)),
                               float(n.get('respawn_delay', 1.0)), bool(n.get('required', False)),
                               nice))
+    if overrides:
+        raise ToolError(f'parameter override(s) for node(s) {sorted(overrides)} that '
+                        f'{path.name} does not start (it starts {[s.name for s in specs]})')
     return specs
 
 
@@ -288,6 +318,9 @@ def main(argv=None) -> int:
                    help='seconds a node gets to stop after Ctrl-C before SIGTERM (default 5)')
     p.add_argument('--print', action='store_true', dest='print_only',
                    help='print the commands and exit')
+    p.add_argument('--param', action='append', default=[], metavar='NODE:NAME:=VALUE',
+                   help='set one node parameter over its files (repeatable), e.g. '
+                        'walking_controller:touchdown_verify_s:=0.0')
     args = p.parse_args(argv)
     try:
         cli = {}
@@ -296,7 +329,7 @@ def main(argv=None) -> int:
                 raise ToolError(f'launch argument {a!r} is not of the form name:=value')
             k, v = a.split(':=', 1)
             cli[k] = v
-        specs = load_launch_file(args.launch_file, cli)
+        specs = load_launch_file(args.launch_file, cli, args.param)
     except ToolError as exc:
         return fail(PROG, exc)
     if args.print_only:
