@@ -1195,13 +1195,18 @@ class WalkingController:
         return seg
 
     def _apex(self, p0: np.ndarray, p1: np.ndarray) -> float:
-        """Swing apex in odom z, clearing the (map-frame) terrain under the path."""
+        """Swing apex in odom z, clearing the (map-frame) terrain under the path.
+
+        The traverse is level in odom; when ``T_map_odom`` has roll or pitch the map height of
+        a level odom line varies linearly along it, so the apex is the higher of the odom
+        heights of the map apex above the two ends (both then clear it)."""
         T = self.T_map_odom
         a, b = transform_points(T, p0[None])[0], transform_points(T, p1[None])[0]
         apex_map = gaitlib.swing_apex(a, b, self.height, self.clearance_m,
                                       corridor_m=1.5 * self.model.foot_radius_m,
                                       min_lift_m=self.model.swing_height_m)
-        return apex_map - (a[2] - p0[2])
+        ends = np.array([[a[0], a[1], apex_map], [b[0], b[1], apex_map]])
+        return float(transform_points(invert(T), ends)[:, 2].max())
 
     def _build(self, t0: float, dur: float, kind: str, body_fn, feet_fn,
                rolling: Optional[np.ndarray] = None) -> Optional[_Segment]:

@@ -129,6 +129,30 @@ def test_stale_plan_starts_no_step():
     assert ctl.phase is None and ctl.status == 'standing'
 
 
+def test_swing_apex_clears_the_map_terrain_at_both_ends_when_the_correction_is_pitched():
+    # The traverse is level in odom; with a pitched T_map_odom its map height changes along
+    # the swing, and the apex must still clear the terrain (+ clearance) at both ends.
+    m = load_robot_model('littledog')
+    ctl = WalkingController(m, WalkingConfig(touchdown_depth_m=0.0))
+    ctl.reset(0.0)
+    ctl.set_height_map(lambda xy: np.where(np.asarray(xy)[..., 0] > 0.1, 0.05, 0.0))
+    T = make_T(rot_z(0.3), [0.4, -0.2, 0.01])
+    pitch = np.deg2rad(4.0)
+    T[:3, :3] = T[:3, :3] @ np.array([[np.cos(pitch), 0, np.sin(pitch)], [0, 1, 0],
+                                       [-np.sin(pitch), 0, np.cos(pitch)]])
+    ctl.apply_correction(T)
+    Ti = np.linalg.inv(T)
+    a, b = np.array([-0.1, 0.05, 0.0]), np.array([0.25, 0.1, 0.05])      # map frame
+    p0, p1 = transform_points(Ti, a[None])[0], transform_points(Ti, b[None])[0]
+    apex_map = G.swing_apex(a, b, ctl.height, ctl.clearance_m, 1.5 * m.foot_radius_m,
+                            m.swing_height_m)
+    apex = ctl._apex(p0, p1)
+    ends = transform_points(T, np.array([[*p0[:2], apex], [*p1[:2], apex]]))
+    assert ends[:, 2].min() >= apex_map - 1e-3, (ends[:, 2], apex_map)   # 2nd order: 0.2 mm
+    # ... and not much higher than needed (the slope over the swing, 0.35 m at 4 degrees).
+    assert ends[:, 2].max() <= apex_map + 0.36 * np.sin(pitch) + 1e-3
+
+
 def test_map_frame_footsteps_use_the_correction_and_odometry_reanchors():
     m = load_robot_model('littledog')
     ctl = WalkingController(m, WalkingConfig(plan_timeout_s=100, touchdown_depth_m=0.0))
