@@ -158,8 +158,9 @@ class WalkingConfig:
 
 
 class Phase(NamedTuple):
-    """The motion segment being executed: 'shift' (body moves, four feet down), 'swing', or
-    'probe' (a foot lowered slowly until it finds the ground)."""
+    """The motion segment being executed: 'shift' (body moves, four feet down), 'swing',
+    'probe' (a foot lowered slowly until it finds the ground) or 'verify' (the body holds
+    still after a swing cut short in the air, to read whether the swung feet bear load)."""
 
     kind: str
     legs: tuple          # swinging legs (empty for a shift)
@@ -515,8 +516,13 @@ class WalkingController:
 
     @property
     def phase(self) -> Optional[Phase]:
-        """Segment in progress, None when standing."""
+        """Segment in progress, None when standing (a pending verification counts: the
+        robot is not done with the step until it knows where the swung foot is)."""
         seg = self._seg
+        if seg is None and self._verify is not None:
+            legs, until, _ = self._verify
+            d = self.config.touchdown_verify_s
+            return Phase('verify', legs, until - d, d)
         return None if seg is None else Phase(seg.kind, seg.legs, seg.t0, seg.duration)
 
     def upcoming_stance(self) -> tuple:

@@ -668,9 +668,11 @@ def test_a_swing_cut_in_the_air_is_checked_and_the_foot_probed_down():
         q, t = K.standing_joint_angles(m).reshape(12), 0.0
         f0 = ctl.feet[0]
         ctl.set_footsteps([0], [[f0[0] + 0.06, f0[1], 0.0]], 'walk', 0.0)
-        cut_above, probed = None, False
+        cut_above, probed, kinds = None, False, []
         while t < 3.0:
             ph = ctl.phase
+            if ph is not None and (not kinds or kinds[-1] != ph.kind):
+                kinds.append(ph.kind)
             foot = transform_points(ctl.odom_pose, K.forward(m, q.reshape(4, 3)))[0]
             lf_z = foot[2] - m.foot_radius_m
             fz = np.array([-0.8, 7.0, 7.0, 7.0])
@@ -686,12 +688,14 @@ def test_a_swing_cut_in_the_air_is_checked_and_the_foot_probed_down():
             if was_swing and (ctl.phase is None or ctl.phase.kind != 'swing'):
                 cut_above = ctl.feet[0, 2]
             t += DT
-        return ctl, cut_above, probed
+        return ctl, cut_above, probed, kinds
 
-    ctl, cut_above, probed = step(0.05)
+    ctl, cut_above, probed, kinds = step(0.05)
     assert ctl.touchdowns['early'] == 1 and cut_above > 0.01       # cut in the air
     assert probed and ctl.touchdowns['hanging_after_swing'] == 1
+    # The wait is a phase of its own (a runner that waits for phase None waits for it too).
+    assert kinds[kinds.index('swing'):][:3] == ['swing', 'verify', 'probe'], kinds
     assert abs(ctl.feet[0, 2]) < 0.002 and ctl.steps_done == 1     # found the ground
-    blind, cut_above, probed = step(0.0)
-    assert blind.touchdowns['early'] == 1 and not probed
+    blind, cut_above, probed, kinds = step(0.0)
+    assert blind.touchdowns['early'] == 1 and not probed and 'verify' not in kinds
     assert blind.feet[0, 2] > 0.01                                  # believed in mid-air

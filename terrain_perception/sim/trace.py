@@ -26,7 +26,7 @@ from terrain_perception.robot_model import LEG_NAMES
 from terrain_perception.transforms import transform_points
 
 #: Phase codes of the ``phase`` column.
-PHASES = ('stand', 'shift', 'swing', 'probe')
+PHASES = ('stand', 'shift', 'swing', 'probe', 'verify')
 #: A foot whose true normal force is below this carries nothing [N].
 LOADED_N = 0.3
 #: Base tilt [deg] taken as the moment of the fall (the runner's fall test is 30 deg).
@@ -54,7 +54,7 @@ class WalkTrace:
         pos, quat = client.getBasePositionAndOrientation(robot.body_id)
         ph = controller.phase
         legs = np.zeros(4, bool)
-        if ph is not None:
+        if ph is not None and ph.kind != 'verify':     # verifying: the legs stand (or hang)
             legs[list(ph.legs)] = True
         feet = controller.feet
         r = self._rows
