@@ -55,7 +55,8 @@ class RunData:
     Poses are ``(N, 4, 4)`` with their stamps ``(N,)`` [s sim]. ``plans`` holds one dict per
     received ``/footstep_plan``: ``stamp``, ``t_recv``, ``status``, ``status_text``, ``gait``,
     ``steps`` ``(K, 5)`` = leg, x, y, z, cost. ``joint_t``/``joint_q`` are joint states
-    ``(N,)``, ``(N, 4, 3)`` in the robot model's leg order.
+    ``(N,)``, ``(N, 4, 3)`` in the robot model's leg order; ``joint_tau`` their efforts (motor
+    torques [N m], NaN where a message had none).
     """
 
     course: CourseInfo
@@ -70,6 +71,7 @@ class RunData:
     corr_T: np.ndarray = field(default_factory=lambda: np.zeros((0, 4, 4)))
     joint_t: np.ndarray = field(default_factory=lambda: np.zeros(0))
     joint_q: np.ndarray = field(default_factory=lambda: np.zeros((0, 4, 3)))
+    joint_tau: np.ndarray = field(default_factory=lambda: np.zeros((0, 4, 3)))   # or NaN
     plans: List[dict] = field(default_factory=list)
     true_terrain: Optional[GridMap] = None
     map_fine: Optional[GridMap] = None
@@ -477,7 +479,163 @@ def compute_summary(d: RunData, model=None, cost_cfg: CostConfig = CostConfig())
         n.get('state') == 'ran' for n in d.nodes.values())
     s['missing'] = missing
     s['notes'] = list(d.notes)
+    s['fall_analysis'] = fall_analysis(d, model, fallen=fallen if len(fallen) else None)
     return s
+
+
+
+# ---------------------------------------------------------------------------------------------
+# falls
+
+#: A foot sphere closer than this to the true terrain touches it [m] (the terrain grid is
+#: sampled at cell centres: a few mm of slack).
+CONTACT_GAP_M = 0.005
+#: A foot slower than this is standing, faster it swings or slips [m/s].
+FOOT_STILL_MPS = 0.03
+#: The tipping itself: the base tilted past this [deg] (the same as the walk trace's).
+TIP_TILT_DEG = 20.0
+
+_DISC = np.array([(0.0, 0.0)] + [(rho * math.cos(a), rho * math.sin(a))
+                                 for rho in (0.5, 0.9) for a in np.arange(8) * math.pi / 4])
+
+
+def foot_gaps(terrain: GridMap, centres: np.ndarray, radius_m: float) -> np.ndarray:
+    """Gap between foot spheres (centres ``(..., 3)``) and the terrain ``(...)`` [m]: the
+    least, over terrain samples under the sphere's disc, of the sphere's underside height
+    above the sample (<= 0: touching or sunk in). NaN off the terrain grid."""
+    c = np.asarray(centres, dtype=np.float64)
+    off = _DISC * radius_m                                             # (S, 2)
+    xy = c[..., None, :2] + off                                        # (..., S, 2)
+    h = terrain.sample('elevation', xy).astype(np.float64)
+    under = c[..., None, 2] - np.sqrt(np.maximum(radius_m ** 2 - (off ** 2).sum(-1), 0.0))
+    return np.min(under - h, axis=-1)
+
+
+def _runs(mask: np.ndarray) -> List[Tuple[int, int]]:
+    """(start, end exclusive) of the True runs of a 1-D mask."""
+    m = np.concatenate([[False], np.asarray(mask, bool), [False]])
+    d = np.flatnonzero(np.diff(m.astype(np.int8)))
+    return list(zip(d[::2].tolist(), d[1::2].tolist()))
+
+
+def fall_analysis(d: RunData, model, window_s: float = 2.0,
+                  fallen: Optional[np.ndarray] = None) -> List[dict]:
+    """How each fall of a run happened, from the true base pose, the joint angles (and
+    torques) and the true terrain: the closed loop's counterpart of the ground-truth walks'
+    trace (:func:`terrain_perception.sim.trace.fall_report`), without the simulator's contact
+    forces, so contact is geometric (a foot within :data:`CONTACT_GAP_M` of the terrain).
+
+    Per fall (an episode of :func:`fall_mask` of 0.5 s or more) a dict: ``t_s``, ``x_m`` where
+    the base first tilted past :data:`TIP_TILT_DEG` (or the fall began, if it went down on its
+    belly); ``com_left_support_t_s`` (the last time the model COM was inside the polygon of
+    the feet on the ground, within ``window_s``), ``support`` (those feet) and ``margin_mm``
+    (a second earlier; negative: already outside), ``support_after`` (the feet on the ground
+    the next sample) and ``swinging`` (the legs moving off the ground then); ``hanging``
+    (stance feet standing still off the ground for 0.1 s or more before that: leg -> longest
+    run [s], its start, largest gap [mm], torque-estimated load [N]);
+    ``belief_offset_mm`` (per leg, where the robot's pose estimate puts the foot minus where
+    it is, x-y and z, at ``com_left_support_t_s``), ``localisation_error_mm``; ``gait`` of the
+    last plan; and ``text``, one line of all that."""
+    from terrain_perception.gait import support_margin
+    from terrain_perception.kinematics import com_base, forward, foot_forces
+    from terrain_perception.robot_model import LEG_NAMES
+    if model is None or not len(d.gt_t) or len(d.joint_t) < 3 or d.true_terrain is None:
+        return []
+    if fallen is None:
+        fallen = fall_mask(d.gt_T, d.true_terrain, model.body_size_m)
+    tilt = np.degrees(tilt_rad(d.gt_T))
+    t_est, T_est, _ = estimated_path(d)
+    out = []
+    for a, b in _runs(fallen):
+        if d.gt_t[b - 1] - d.gt_t[a] < 0.5:
+            continue
+        before = np.flatnonzero((d.gt_t >= d.gt_t[a] - 3.0) & (d.gt_t <= d.gt_t[a]))
+        tipped = before[tilt[before] > TIP_TILT_DEG]
+        k = int(tipped[0]) if len(tipped) else a
+        t_fall = float(d.gt_t[k])
+        rows = np.flatnonzero((d.joint_t >= t_fall - window_s) & (d.joint_t <= t_fall))
+        if len(rows) < 3:
+            continue
+        t = d.joint_t[rows]
+        q = d.joint_q[rows]
+        T = interp_poses(d.gt_t, d.gt_T, t)
+        feet = np.einsum('nij,nkj->nki', T[:, :3, :3], forward(model, q)) + T[:, None, :3, 3]
+        gap = foot_gaps(d.true_terrain, feet, model.foot_radius_m)             # (n, 4)
+        on = np.nan_to_num(gap, nan=1.0) < CONTACT_GAP_M
+        dt = np.maximum(np.gradient(t), 1e-6)
+        still = np.linalg.norm(np.gradient(feet, axis=0), axis=-1) / dt[:, None] < FOOT_STILL_MPS
+        com = np.einsum('nij,nj->ni', T[:, :3, :3], com_base(model, q)) + T[:, :3, 3]
+        margin = np.full(len(t), np.nan)
+        for i in range(len(t)):
+            if on[i].sum() >= 2:
+                margin[i] = float(support_margin(com[i, :2], feet[i, on[i], :2]))
+        inside = np.flatnonzero(np.nan_to_num(margin, nan=-1.0) > 0.0)
+        j = int(inside[-1]) if len(inside) else 0
+        j1 = min(j + 1, len(t) - 1)          # the support just lost (or the window's start)
+        legs = lambda m: '+'.join(LEG_NAMES[i] for i in range(4) if m[i]) or 'none'  # noqa
+        r = {'t_s': round(t_fall, 3), 'x_m': round(float(d.gt_T[k, 0, 3]), 4),
+             'swinging': legs(~on[j1] & ~still[j1]),
+             'com_left_support_t_s': round(float(t[j]), 3) if len(inside) else None,
+             'support': legs(on[j]) if len(inside) else None,
+             'support_after': legs(on[j1]) if len(inside) else None}
+        k1 = int(np.searchsorted(t, t[j] - 1.0))
+        r['margin_mm'] = (round(float(margin[k1]) * 1000, 1) if np.isfinite(margin[k1])
+                          else None)
+        # stance feet off the ground: standing still, not touching, before the COM left
+        hang = {}
+        tau = getattr(d, 'joint_tau', None)
+        has_tau = tau is not None and len(tau) == len(d.joint_t)
+        for leg in range(4):
+            free = (still[:j + 1, leg] & ~on[:j + 1, leg]
+                    & np.isfinite(gap[:j + 1, leg]))
+            best = max(_runs(free), key=lambda ab: ab[1] - ab[0], default=None)
+            if best is None or t[best[1] - 1] - t[best[0]] < 0.1:
+                continue
+            s0, s1 = best
+            load = None
+            if has_tau:
+                f = foot_forces(model, q[s0:s1], tau[rows][s0:s1])[:, leg]       # base frame
+                fz = np.einsum('nj,nj->n', T[s0:s1, 2, :3], f)                  # world z
+                load = round(float(np.nanmean(fz)), 1) if np.isfinite(fz).any() else None
+            hang[LEG_NAMES[leg]] = {'s': round(float(t[s1 - 1] - t[s0]), 2),
+                                    'from_t_s': round(float(t[s0]), 2),
+                                    'gap_mm': round(float(np.nanmax(gap[s0:s1, leg])) * 1e3, 1),
+                                    'estimated_load_n': load}
+        r['hanging'] = hang
+        if len(t_est):
+            Tb = interp_poses(t_est, T_est, t[j:j + 1])[0]
+            fb = forward(model, q[j]) @ Tb[:3, :3].T + Tb[:3, 3]
+            off = fb - feet[j]
+            r['belief_offset_mm'] = {
+                LEG_NAMES[i]: [round(float(np.linalg.norm(off[i, :2])) * 1000, 1),
+                               round(float(off[i, 2]) * 1000, 1)] for i in range(4)}
+            r['localisation_error_mm'] = round(float(np.linalg.norm(Tb[:3, 3] - T[j, :3, 3]))
+                                               * 1000, 1)
+        else:
+            r['belief_offset_mm'], r['localisation_error_mm'] = None, None
+        plans = [p for p in d.plans
+                 if p.get('t_recv', p['stamp']) <= t_fall and len(p['steps'])]
+        r['gait'] = plans[-1].get('gait') if plans else None
+        text = [f'fell at t = {t_fall:.2f} s, x = {r["x_m"]:.3f} m, swinging {r["swinging"]}']
+        if r['com_left_support_t_s'] is not None:
+            text.append(f'COM last inside the feet on the ground ({r["support"]}) at t = '
+                        f'{r["com_left_support_t_s"]:.2f} s ({t_fall - t[j]:.2f} s before; '
+                        f'next sample on the ground: {r["support_after"]}), margin 1 s earlier '
+                        f'{r["margin_mm"]} mm')
+        else:
+            text.append(f'COM outside the feet on the ground for the whole {window_s:.0f} s')
+        text.append('hanging stance feet: ' + (', '.join(
+            f'{leg} {h["s"]:.2f} s from t = {h["from_t_s"]:.2f} (gap up to {h["gap_mm"]:.0f} mm'
+            + (f', estimated load {h["estimated_load_n"]:.1f} N)'
+               if h['estimated_load_n'] is not None else ')')
+            for leg, h in hang.items()) or 'none'))
+        if r['belief_offset_mm'] is not None:
+            text.append('belief - truth per foot then [mm] (x-y, z): ' + ', '.join(
+                f'{leg} {v[0]:.0f}, {v[1]:+.0f}' for leg, v in r['belief_offset_mm'].items())
+                + f'; localisation error {r["localisation_error_mm"]:.0f} mm')
+        r['text'] = '; '.join(text)
+        out.append(r)
+    return out
 
 
 # ---------------------------------------------------------------------------------------------
@@ -766,6 +924,8 @@ def format_summary(s: dict) -> str:
                             for k, v in s['latency_stages_ms'].items()) + ')'
            if s.get('latency_stages_ms') else ''),
     ]
+    for fa in s.get('fall_analysis') or []:
+        lines.append(f'  fall           {fa["text"]}')
     bad = {k: v for k, v in s.get('nodes', {}).items() if v.get('state') != 'ran'}
     if not s.get('nodes'):
         lines.append('  nodes          no node information')

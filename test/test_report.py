@@ -202,3 +202,66 @@ def test_the_live_rule_ends_a_walk_that_makes_no_progress():
     stuck = [(0.5 * k, 1.20 + (0.004 if k % 2 else 0.0), 3.0) for k in range(200)]
     reason, t_end = _live_end(*_walk(stuck))
     assert reason.startswith('stalled') and t_end == pytest.approx(60.0)
+
+
+def test_a_fall_is_explained_from_the_true_poses_joints_and_terrain():
+    # Feet fixed on flat ground except LH, which stands still over a 2 cm pit (hanging); the
+    # body leans towards RF. At t = 4 s RF lifts: the model COM is left over the LF-RH
+    # diagonal only, and the robot pitches over from t = 4.5 s (past 20 deg at 4.57 s). The
+    # pose estimate is 1 cm off in x. The analysis must name all of it.
+    from terrain_perception.grid import GridMap
+    from terrain_perception.kinematics import feet_in_base, inverse
+    from terrain_perception.robot_model import load_robot_model
+    model = load_robot_model('littledog')
+    base0 = _pose(1.2, 0.0, 0.0)
+    base0[2, 3] = model.standing_height_m
+    feet = model.nominal_feet @ base0[:3, :3].T + base0[:3, 3]
+    feet[:, 2] = 0.0
+    elev = np.zeros((200, 100), np.float32)           # 5 mm cells from (0.7, -0.25)
+    terrain = GridMap.from_layers(0.005, (0.7, -0.25), {'elevation': elev})
+    i, j = terrain.world_to_index(feet[2, :2])
+    elev[i - 4:i + 5, j - 4:j + 5] = -0.02                # the pit under LH
+    terrain['elevation'] = elev
+    d = RunData(CourseInfo('rocks-6cm', 0, 0.4, 1.0, 1.75, 2.15), 'littledog')
+    d.true_terrain = terrain
+    t = np.round(np.arange(0.0, 6.0, 0.01), 2)
+    T, Q = [], []
+    for tk in t:
+        B = base0.copy()
+        B[:2, 3] += [0.015, -0.015]                       # the body leans towards RF
+        f = feet.copy()
+        f[:, 2] += model.foot_radius_m                    # sphere centres
+        if tk >= 4.0:
+            f[1, 2] += min(tk - 4.0, 0.5) * 0.1           # RF lifts (swing)
+        q = inverse(model, feet_in_base(B, f))
+        if tk >= 4.5:
+            B = B @ _pitched(0.0, min((tk - 4.5) * 300.0, 90.0))
+            B[:3, 3] = base0[:3, 3]
+        T.append(B)
+        Q.append(q)
+    d.gt_t, d.gt_T = t, np.stack(T)
+    d.joint_t, d.joint_q = t, np.stack(Q)
+    d.joint_tau = np.zeros_like(d.joint_q)
+    d.dr_t, d.dr_T = t, d.gt_T.copy()
+    d.dr_T[:, 0, 3] += 0.01
+    s = compute_summary(d, model)
+    assert s['falls'] == 1 and len(s['fall_analysis']) == 1
+    fa = s['fall_analysis'][0]
+    assert fa['t_s'] == pytest.approx(4.57, abs=0.011)           # 300 deg/s past 20 deg
+    assert fa['swinging'] == 'RF'
+    # RF is off the ground once 5 mm up (CONTACT_GAP_M): 0.05 s into its lift
+    assert fa['com_left_support_t_s'] == pytest.approx(4.05, abs=0.011)
+    assert fa['support'] == 'LF+RF+RH' and fa['support_after'] == 'LF+RH'
+    assert fa['margin_mm'] > 0.0
+    assert set(fa['hanging']) == {'LH'}
+    assert fa['hanging']['LH']['gap_mm'] == pytest.approx(20.0, abs=1.0)
+    assert fa['hanging']['LH']['estimated_load_n'] == pytest.approx(0.0, abs=1e-6)
+    assert all(v[0] == pytest.approx(10.0, abs=0.5) and abs(v[1]) < 0.5
+               for v in fa['belief_offset_mm'].values())
+    assert fa['localisation_error_mm'] == pytest.approx(10.0, abs=0.5)
+    assert 'fall           fell at t = 4.57 s' in format_summary(s)
+    # An upright walk has nothing to explain.
+    d.gt_T, d.joint_q = d.gt_T[:350], d.joint_q[:350]
+    d.gt_t = d.joint_t = d.dr_t = t[:350]
+    d.joint_tau, d.dr_T = d.joint_tau[:350], d.dr_T[:350]
+    assert compute_summary(d, model)['fall_analysis'] == []

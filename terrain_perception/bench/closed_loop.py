@@ -120,6 +120,7 @@ def _trial(args, course: str, robot: str, variant: str, seed: int, out: Path) ->
                mean_speed_mps=s.get('mean_speed_mps'), end_reason=s.get('end_reason'),
                complete_graph=s.get('complete_graph'),
                latencies_ms=s.get('capture_to_plan_ms_all') or [],
+               fall_analysis=[fa.get('text') for fa in s.get('fall_analysis') or []],
                success=bool(s.get('crossed')) and not s.get('falls'))
     return row
 
@@ -149,6 +150,8 @@ def run(args) -> dict:
                          f'({row.get("end_reason")}; {row["wall_s"]:.0f} s wall'
                          f'{"" if row.get("complete_graph") else "; INCOMPLETE GRAPH"})'
                          if row['ok'] else f'FAILED TO RUN: {row["error"]}'), flush=True)
+                for text in row.get('fall_analysis') or []:
+                    print(f'      {text}', flush=True)
     success, falls, speed = {}, {}, {}
     for course in args.courses:
         for variant in args.variants:

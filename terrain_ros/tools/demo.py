@@ -403,7 +403,7 @@ class Monitor:
         self.icp_t, self.icp_T = [], []
         self.dr_t, self.dr_T = [], []
         self.corr_t, self.corr_T = [], []
-        self.joint_t, self.joint_q = [], []
+        self.joint_t, self.joint_q, self.joint_tau = [], [], []
         self.plans: List[dict] = []
         self.terrain_msg = None
         self.fine_msg = None
@@ -600,9 +600,12 @@ class Monitor:
         pos = np.asarray(msg.position, dtype=np.float64)
         if pos.size != len(names):
             return
+        eff = np.asarray(msg.effort, dtype=np.float64)
+        tau = eff[idx].reshape(4, 3) if eff.size == len(names) else np.full((4, 3), np.nan)
         with self.lock:
             self.joint_t.append(t)
             self.joint_q.append(pos[idx].reshape(4, 3))
+            self.joint_tau.append(tau)
 
     def _on_image(self, data: bytes) -> None:
         from terrain_ros.conversions import peek_stamp
@@ -677,6 +680,7 @@ class Monitor:
             d.corr_t, d.corr_T = arr(self.corr_t, self.corr_T)
             d.joint_t = np.asarray(self.joint_t, np.float64)
             d.joint_q = np.asarray(self.joint_q, np.float64).reshape(-1, 4, 3)
+            d.joint_tau = np.asarray(self.joint_tau, np.float64).reshape(-1, 4, 3)
             d.plans = list(self.plans)
         for attr, msg in (('true_terrain', self.terrain_msg), ('map_fine', self.fine_msg),
                           ('map_filled', self.filled_msg)):
