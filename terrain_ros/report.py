@@ -533,9 +533,11 @@ def fall_analysis(d: RunData, model, window_s: float = 2.0,
     the next sample) and ``swinging`` (the legs moving off the ground then); ``hanging``
     (stance feet standing still off the ground for 0.1 s or more before that: leg -> longest
     run [s], its start, largest gap [mm], torque-estimated load [N]);
-    ``belief_offset_mm`` (per leg, where the robot's pose estimate puts the foot minus where
-    it is, x-y and z, at ``com_left_support_t_s``), ``localisation_error_mm``; ``gait`` of the
-    last plan; and ``text``, one line of all that."""
+    ``hard_contacts`` (feet whose torque-estimated vertical load exceeded the robot's weight
+    in the last 0.5 s: leg -> N, time); ``belief_offset_mm`` (per leg, where the robot's pose
+    estimate puts the foot minus where it is, x-y and z, at ``belief_t_s``: the COM's last
+    moment inside, but at most 0.5 s before the tip, which the estimate does not follow),
+    ``localisation_error_mm``; ``gait`` of the last plan; and ``text``, one line of all that."""
     from terrain_perception.gait import support_margin
     from terrain_perception.kinematics import com_base, forward, foot_forces
     from terrain_perception.robot_model import LEG_NAMES
@@ -602,14 +604,31 @@ def fall_analysis(d: RunData, model, window_s: float = 2.0,
                                     'gap_mm': round(float(np.nanmax(gap[s0:s1, leg])) * 1e3, 1),
                                     'estimated_load_n': load}
         r['hanging'] = hang
+        # Torque-estimated vertical loads above the robot's weight in the last 0.5 s: a foot
+        # that met the ground hard (a swing landing early on ground higher than believed).
+        r['hard_contacts'] = {}
+        if has_tau:
+            last = np.flatnonzero(t >= t_fall - 0.5)
+            f = foot_forces(model, q[last], tau[rows][last])
+            fz = np.einsum('nj,nkj->nk', T[last, 2, :3], f)
+            weight = model.total_mass_kg * 9.81
+            for leg in range(4):
+                if np.nanmax(fz[:, leg], initial=-np.inf) > weight:
+                    i = int(np.nanargmax(fz[:, leg]))
+                    r['hard_contacts'][LEG_NAMES[leg]] = {
+                        'n': round(float(fz[i, leg]), 1), 't_s': round(float(t[last[i]]), 2)}
+        # The estimate against the truth before the tipping (the estimate does not tip with
+        # the robot): at the COM's last moment inside, at most 0.5 s before the tip.
+        jb = min(j, max(int(np.searchsorted(t, t_fall - 0.5)) - 1, 0))
+        r['belief_t_s'] = round(float(t[jb]), 3)
         if len(t_est):
-            Tb = interp_poses(t_est, T_est, t[j:j + 1])[0]
-            fb = forward(model, q[j]) @ Tb[:3, :3].T + Tb[:3, 3]
-            off = fb - feet[j]
+            Tb = interp_poses(t_est, T_est, t[jb:jb + 1])[0]
+            fb = forward(model, q[jb]) @ Tb[:3, :3].T + Tb[:3, 3]
+            off = fb - feet[jb]
             r['belief_offset_mm'] = {
                 LEG_NAMES[i]: [round(float(np.linalg.norm(off[i, :2])) * 1000, 1),
                                round(float(off[i, 2]) * 1000, 1)] for i in range(4)}
-            r['localisation_error_mm'] = round(float(np.linalg.norm(Tb[:3, 3] - T[j, :3, 3]))
+            r['localisation_error_mm'] = round(float(np.linalg.norm(Tb[:3, 3] - T[jb, :3, 3]))
                                                * 1000, 1)
         else:
             r['belief_offset_mm'], r['localisation_error_mm'] = None, None
@@ -629,8 +648,13 @@ def fall_analysis(d: RunData, model, window_s: float = 2.0,
             + (f', estimated load {h["estimated_load_n"]:.1f} N)'
                if h['estimated_load_n'] is not None else ')')
             for leg, h in hang.items()) or 'none'))
+        text.append(f'swing feet landing harder than the robot\'s weight '
+                    f'({model.total_mass_kg * 9.81:.0f} N) in the last 0.5 s: ' + (', '.join(
+                        f'{leg} {h["n"]:.0f} N at t = {h["t_s"]:.2f}'
+                        for leg, h in r['hard_contacts'].items()) or 'none'))
         if r['belief_offset_mm'] is not None:
-            text.append('belief - truth per foot then [mm] (x-y, z): ' + ', '.join(
+            text.append(f'belief - truth per foot at t = {r["belief_t_s"]:.2f} [mm] (x-y, z): '
+                        + ', '.join(
                 f'{leg} {v[0]:.0f}, {v[1]:+.0f}' for leg, v in r['belief_offset_mm'].items())
                 + f'; localisation error {r["localisation_error_mm"]:.0f} mm')
         r['text'] = '; '.join(text)

@@ -242,6 +242,10 @@ def test_a_fall_is_explained_from_the_true_poses_joints_and_terrain():
     d.gt_t, d.gt_T = t, np.stack(T)
     d.joint_t, d.joint_q = t, np.stack(Q)
     d.joint_tau = np.zeros_like(d.joint_q)
+    # LH's motors hold 80 N of ground force at t = 4.3 s (a hard landing)
+    from terrain_perception.kinematics import jacobian
+    k = int(np.flatnonzero(t == 4.3)[0])
+    d.joint_tau[k, 2] = -jacobian(model, d.joint_q[k])[2].T @ np.array([0.0, 0.0, 80.0])
     d.dr_t, d.dr_T = t, d.gt_T.copy()
     d.dr_T[:, 0, 3] += 0.01
     s = compute_summary(d, model)
@@ -255,10 +259,12 @@ def test_a_fall_is_explained_from_the_true_poses_joints_and_terrain():
     assert fa['margin_mm'] > 0.0
     assert set(fa['hanging']) == {'LH'}
     assert fa['hanging']['LH']['gap_mm'] == pytest.approx(20.0, abs=1.0)
-    assert fa['hanging']['LH']['estimated_load_n'] == pytest.approx(0.0, abs=1e-6)
+    assert fa['hanging']['LH']['estimated_load_n'] == pytest.approx(0.0, abs=1e-6)   # before
     assert all(v[0] == pytest.approx(10.0, abs=0.5) and abs(v[1]) < 0.5
                for v in fa['belief_offset_mm'].values())
     assert fa['localisation_error_mm'] == pytest.approx(10.0, abs=0.5)
+    assert fa['belief_t_s'] == pytest.approx(4.05, abs=0.011)
+    assert fa['hard_contacts'] == {'LH': {'n': pytest.approx(80.0, abs=0.1), 't_s': 4.3}}
     assert 'fall           fell at t = 4.57 s' in format_summary(s)
     # An upright walk has nothing to explain.
     d.gt_T, d.joint_q = d.gt_T[:350], d.joint_q[:350]
