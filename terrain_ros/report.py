@@ -604,8 +604,9 @@ def fall_analysis(d: RunData, model, window_s: float = 2.0,
                                     'gap_mm': round(float(np.nanmax(gap[s0:s1, leg])) * 1e3, 1),
                                     'estimated_load_n': load}
         r['hanging'] = hang
-        # Torque-estimated vertical loads above the robot's weight in the last 0.5 s: a foot
-        # that met the ground hard (a swing landing early on ground higher than believed).
+        # Torque-estimated vertical loads above the robot's weight in the last 0.5 s: a swing
+        # foot that met the ground hard (landing early on ground higher than believed), or a
+        # stance foot the tipping body fell onto.
         r['hard_contacts'] = {}
         if has_tau:
             last = np.flatnonzero(t >= t_fall - 0.5)
@@ -648,8 +649,8 @@ def fall_analysis(d: RunData, model, window_s: float = 2.0,
             + (f', estimated load {h["estimated_load_n"]:.1f} N)'
                if h['estimated_load_n'] is not None else ')')
             for leg, h in hang.items()) or 'none'))
-        text.append(f'swing feet landing harder than the robot\'s weight '
-                    f'({model.total_mass_kg * 9.81:.0f} N) in the last 0.5 s: ' + (', '.join(
+        text.append(f'feet loaded beyond the robot\'s weight ({model.total_mass_kg * 9.81:.0f} '
+                    f'N, torque estimate) in the last 0.5 s: ' + (', '.join(
                         f'{leg} {h["n"]:.0f} N at t = {h["t_s"]:.2f}'
                         for leg, h in r['hard_contacts'].items()) or 'none'))
         if r['belief_offset_mm'] is not None:
