@@ -27,3 +27,30 @@ def test_suite_refuses_a_missing_bag_directory(tmp_path):
         bag = [tmp_path / 'nope']
     with pytest.raises(FileNotFoundError, match='does not exist'):
         icp_replay.run(Args())
+
+
+def test_suite_compares_the_config_with_candidate_parameters(tmp_path, monkeypatch):
+    # --param: the variants are the config file and the config plus the parameters, and the
+    # ratios are baseline / candidate (the tool itself is stubbed: a bag is too large here).
+    calls = []
+
+    def fake(bag, params):
+        calls.append(list(params))
+        worse = not params
+        return {'captures': 10, 'accepted': 10, 'yaw_err_deg_rms': 2.0 if worse else 1.0,
+                'yaw_err_deg_max': 3.0, 'yaw_err_deg_final': 1.0,
+                'pos_err_m_rms': 0.04 if worse else 0.01, 'pos_err_m_max': 0.05,
+                'pos_err_m_final': 0.01}
+    monkeypatch.setattr(icp_replay, '_run_tool', fake)
+
+    class Args:
+        bag = [tmp_path]
+        param = ['degeneracy_noise_gain:=3.0']
+    out = icp_replay.run(Args())
+    assert calls == [[], ['degeneracy_noise_gain:=3.0']]
+    assert out['pos_rms_ratio'][str(tmp_path)] == pytest.approx(4.0)
+    assert out['yaw_rms_ratio'][str(tmp_path)] == pytest.approx(2.0)
+    assert set(out['bags'][str(tmp_path)]) == {'default', 'candidate'}
+    Args.param = ['degeneracy_noise_gain=3']
+    with pytest.raises(ValueError, match='NAME:=VALUE'):
+        icp_replay.run(Args())
