@@ -534,7 +534,8 @@ def fall_analysis(d: RunData, model, window_s: float = 2.0,
     (stance feet standing still off the ground for 0.1 s or more before that: leg -> longest
     run [s], its start, largest gap [mm], torque-estimated load [N]);
     ``hard_contacts`` (feet whose torque-estimated vertical load exceeded the robot's weight
-    in the last 0.5 s: leg -> N, time); ``belief_offset_mm`` (per leg, where the robot's pose
+    in the last 0.5 s: leg -> N, time, fastest descent of that foot in the 50 ms before);
+    ``belief_offset_mm`` (per leg, where the robot's pose
     estimate puts the foot minus where it is, x-y and z, at ``belief_t_s``: the COM's last
     moment inside, but at most 0.5 s before the tip, which the estimate does not follow),
     ``localisation_error_mm``; ``gait`` of the last plan; and ``text``, one line of all that."""
@@ -616,8 +617,12 @@ def fall_analysis(d: RunData, model, window_s: float = 2.0,
             for leg in range(4):
                 if np.nanmax(fz[:, leg], initial=-np.inf) > weight:
                     i = int(np.nanargmax(fz[:, leg]))
+                    # how fast the foot came down just before (a landing) [m/s]
+                    before = np.flatnonzero((t >= t[last[i]] - 0.05) & (t <= t[last[i]]))
+                    vz = np.gradient(feet[:, leg, 2], t)[before]
                     r['hard_contacts'][LEG_NAMES[leg]] = {
-                        'n': round(float(fz[i, leg]), 1), 't_s': round(float(t[last[i]]), 2)}
+                        'n': round(float(fz[i, leg]), 1), 't_s': round(float(t[last[i]]), 2),
+                        'descent_mps': round(float(max(-vz.min(), 0.0)), 3)}
         # The estimate against the truth before the tipping (the estimate does not tip with
         # the robot): at the COM's last moment inside, at most 0.5 s before the tip.
         jb = min(j, max(int(np.searchsorted(t, t_fall - 0.5)) - 1, 0))
@@ -651,7 +656,8 @@ def fall_analysis(d: RunData, model, window_s: float = 2.0,
             for leg, h in hang.items()) or 'none'))
         text.append(f'feet loaded beyond the robot\'s weight ({model.total_mass_kg * 9.81:.0f} '
                     f'N, torque estimate) in the last 0.5 s: ' + (', '.join(
-                        f'{leg} {h["n"]:.0f} N at t = {h["t_s"]:.2f}'
+                        f'{leg} {h["n"]:.0f} N at t = {h["t_s"]:.2f} after descending at '
+                        f'up to {h["descent_mps"]:.2f} m/s'
                         for leg, h in r['hard_contacts'].items()) or 'none'))
         if r['belief_offset_mm'] is not None:
             text.append(f'belief - truth per foot at t = {r["belief_t_s"]:.2f} [mm] (x-y, z): '

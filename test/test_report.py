@@ -231,8 +231,8 @@ def test_a_fall_is_explained_from_the_true_poses_joints_and_terrain():
         B[:2, 3] += [0.015, -0.015]                       # the body leans towards RF
         f = feet.copy()
         f[:, 2] += model.foot_radius_m                    # sphere centres
-        if tk >= 4.0:
-            f[1, 2] += min(tk - 4.0, 0.5) * 0.1           # RF lifts (swing)
+        if tk >= 4.0:                                     # RF lifts 25 mm, comes down
+            f[1, 2] += max(min(tk - 4.0, 0.25) * 0.1 - max(tk - 4.25, 0.0) * 0.05, 0.0)
         q = inverse(model, feet_in_base(B, f))
         if tk >= 4.5:
             B = B @ _pitched(0.0, min((tk - 4.5) * 300.0, 90.0))
@@ -242,10 +242,12 @@ def test_a_fall_is_explained_from_the_true_poses_joints_and_terrain():
     d.gt_t, d.gt_T = t, np.stack(T)
     d.joint_t, d.joint_q = t, np.stack(Q)
     d.joint_tau = np.zeros_like(d.joint_q)
-    # LH's motors hold 80 N of ground force at t = 4.3 s (a hard landing)
+    # LH's motors hold 80 N of ground force at t = 4.3 s (the body falling onto it), RF's
+    # 60 N at 4.4 s as it comes down at 5 cm/s (a landing)
     from terrain_perception.kinematics import jacobian
-    k = int(np.flatnonzero(t == 4.3)[0])
-    d.joint_tau[k, 2] = -jacobian(model, d.joint_q[k])[2].T @ np.array([0.0, 0.0, 80.0])
+    for tk, leg, force in ((4.3, 2, 80.0), (4.4, 1, 60.0)):
+        k = int(np.flatnonzero(t == tk)[0])
+        d.joint_tau[k, leg] = -jacobian(model, d.joint_q[k])[leg].T @ np.array([0, 0, force])
     d.dr_t, d.dr_T = t, d.gt_T.copy()
     d.dr_T[:, 0, 3] += 0.01
     s = compute_summary(d, model)
@@ -264,7 +266,10 @@ def test_a_fall_is_explained_from_the_true_poses_joints_and_terrain():
                for v in fa['belief_offset_mm'].values())
     assert fa['localisation_error_mm'] == pytest.approx(10.0, abs=0.5)
     assert fa['belief_t_s'] == pytest.approx(4.05, abs=0.011)
-    assert fa['hard_contacts'] == {'LH': {'n': pytest.approx(80.0, abs=0.1), 't_s': 4.3}}
+    assert fa['hard_contacts'] == {
+        'LH': {'n': pytest.approx(80.0, abs=0.1), 't_s': 4.3, 'descent_mps': 0.0},
+        'RF': {'n': pytest.approx(60.0, abs=0.1), 't_s': 4.4,
+               'descent_mps': pytest.approx(0.05, abs=0.002)}}
     assert 'fall           fell at t = 4.57 s' in format_summary(s)
     # An upright walk has nothing to explain.
     d.gt_T, d.joint_q = d.gt_T[:350], d.joint_q[:350]
