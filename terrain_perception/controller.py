@@ -111,6 +111,15 @@ class WalkingConfig:
                                          'no inertia) has found the ground when its estimated '
                                          'vertical force exceeds this [N]; hanging it reads '
                                          'about -1 N (its own weight)', -100.0, 1000.0)
+    swing_approach_m: float = param(
+        0.0, 'The last this much of a swing\'s lowering is a slow straight descent at '
+        'swing_approach_speed_m_s (capped by the apex): ground up to this much higher than '
+        'believed is met slowly instead of at the minimum-jerk lowering\'s speed (LittleDog: '
+        '0.8 m/s mid-way down), which kicks the body up when the estimate is off; adds the '
+        'approach time to every swing (0 = off) [m]', 0.0, 0.1)
+    swing_approach_speed_m_s: float = param(
+        0.15, 'Descent speed of that final approach; below contact_max_descent_m_s so a '
+        'contact during it counts [m/s]', 0.01, 1.0)
     early_touchdown_fraction: float = param(0.75, 'Contact after this fraction of a swing ends '
                                             'the swing where the foot is: the ground is higher '
                                             'than planned [-]', 0.5, 1.0)
@@ -191,6 +200,7 @@ class _Segment:
     knots: Optional[np.ndarray] = None      # (n,) IK knot times [s]
     roll: Optional[np.ndarray] = None       # (n, 4, 3) rolling displacement at the knots
     q_end: Optional[np.ndarray] = None      # (12,) joint angles at the end (the last knot)
+    approach_s: float = 0.0       # a swing's slow final approach at its end [s]
 
     def feet_at(self, tau: float) -> np.ndarray:
         """``(4, 3)`` contact points (odom) at ``tau`` into the segment, rolling included."""
@@ -729,7 +739,7 @@ class WalkingController:
         if seg.kind == 'probe':
             return bool((self._touch_count[legs] >= self.config.contact_ticks).all())
         if seg.kind == 'swing' and t - seg.t0 >= self.config.early_touchdown_fraction \
-                * seg.duration and t < seg.t_end and loaded[legs].all():
+                * (seg.duration - seg.approach_s) and t < seg.t_end and loaded[legs].all():
             # Higher than the foothold by more than the map can be wrong: not the ground
             # under the foothold but a shank or the foot meeting an obstacle on the way.
             above = seg.feet_at(t - seg.t0)[legs, 2] - seg.feet_end[legs, 2]
@@ -1003,9 +1013,9 @@ class WalkingController:
         taus = np.linspace(0.0, 1.0, 13)
         poses = np.repeat(self._feet[None], len(taus), axis=0)
         for k, leg in enumerate(legs):
-            sw = gaitlib.SwingTrajectory(self._feet[leg], targets[k],
-                                         self._apex(self._feet[leg], targets[k]), 1.0)
-            poses[:, leg] = sw.position(taus)
+            sw = self._swing_trajectory(self._feet[leg], targets[k],
+                                        self._apex(self._feet[leg], targets[k]), 1.0)
+            poses[:, leg] = sw.position(taus * sw.total_s)
         names = "+".join(LEG_NAMES[k] for k in legs)
         nominal_off = transform_points(gaitlib.pose_to_T(goal), kinematics.com_base(
             m, kinematics.standing_joint_angles(m))[None])[0, :2] - goal[:2]
@@ -1159,6 +1169,11 @@ class WalkingController:
         feet[:, 2] += g * dz
         return feet
 
+    def _swing_trajectory(self, p0, p1, apex: float, dur: float) -> gaitlib.SwingTrajectory:
+        c = self.config
+        return gaitlib.SwingTrajectory(p0, p1, apex, dur, approach_m=c.swing_approach_m,
+                                       approach_speed_m_s=c.swing_approach_speed_m_s)
+
     def _make_swing(self, step: _Step, t0: float) -> Optional[_Segment]:
         m = self.model
         legs = list(step.legs)
@@ -1169,7 +1184,9 @@ class WalkingController:
         for k, leg in enumerate(legs):
             p0, p1 = self._feet[leg], targets[k]
             apex = self._apex(p0, p1)
-            swings.append(gaitlib.SwingTrajectory(p0, p1, apex, dur))
+            swings.append(self._swing_trajectory(p0, p1, apex, dur))
+        approach = max(sw.approach_s for sw in swings)
+        dur += approach
         body = self._body.copy()
         feet0 = self._feet.copy()
 
@@ -1197,6 +1214,7 @@ class WalkingController:
         seg.body_end = body
         seg.legs = tuple(legs)
         seg.moves_body = False
+        seg.approach_s = approach
         self._last_legs = tuple(legs)
         return seg
 

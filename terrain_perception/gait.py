@@ -163,11 +163,20 @@ def swing_apex(p0: np.ndarray, p1: np.ndarray, height: HeightFn, clearance_m: fl
 
 @dataclass(frozen=True)
 class SwingTrajectory:
-    """Foot path lift -> traverse at the apex -> lower, each part minimum-jerk.
+    """Foot path lift -> traverse at the apex -> lower, each part minimum-jerk, then
+    optionally a slow final approach.
+
+    With ``approach_m`` > 0 the minimum-jerk lowering stops that far above ``p1`` and the foot
+    covers the rest straight down at ``approach_speed_m_s``: ground higher than believed by
+    up to ``approach_m`` is met at that speed instead of at the lowering's (1.875 x the drop
+    over its time at the middle: 0.8 m/s for LittleDog's 4 cm in 0.09 s). The approach adds
+    :attr:`approach_s` after ``duration_s``; :attr:`total_s` is the whole swing.
 
     Attributes:
         p0, p1: start and end foot positions (world) [m]; apex_z: traverse height [m];
-        duration_s: total time; lift_fraction: share of the time for each vertical part.
+        duration_s: time of lift, traverse and lowering; lift_fraction: share of that time for
+        each vertical part; approach_m: height of the final approach above ``p1`` [m] (capped
+        by the apex); approach_speed_m_s: its descent speed.
     """
 
     p0: np.ndarray
@@ -175,13 +184,32 @@ class SwingTrajectory:
     apex_z: float
     duration_s: float
     lift_fraction: float = 0.25
+    approach_m: float = 0.0
+    approach_speed_m_s: float = 0.1
+
+    @property
+    def approach_height_m(self) -> float:
+        """The approach's actual height: ``approach_m`` but not above the apex."""
+        return float(min(max(self.approach_m, 0.0),
+                         max(float(self.apex_z) - float(np.asarray(self.p1)[2]), 0.0)))
+
+    @property
+    def approach_s(self) -> float:
+        a = self.approach_height_m
+        return a / self.approach_speed_m_s if a > 0.0 else 0.0
+
+    @property
+    def total_s(self) -> float:
+        return self.duration_s + self.approach_s
 
     def position(self, t: np.ndarray) -> np.ndarray:
-        """Foot position ``(..., 3)`` at times ``t`` [s] since the swing start (clipped)."""
+        """Foot position ``(..., 3)`` at times ``t`` [s] since the swing start (clipped to
+        ``[0, total_s]``)."""
         t = np.asarray(t, dtype=np.float64)
         s = np.clip(t / self.duration_s, 0.0, 1.0)
         f = self.lift_fraction
         p0, p1 = np.asarray(self.p0, float), np.asarray(self.p1, float)
+        a = self.approach_height_m
         up, _ = min_jerk(s / f)
         down, _ = min_jerk((s - (1.0 - f)) / f)
         # the traverse overlaps the vertical parts slightly so the foot leaves the ground
@@ -189,7 +217,9 @@ class SwingTrajectory:
         across, _ = min_jerk((s - 0.6 * f) / (1.0 - 1.2 * f))
         xy = p0[:2] + across[..., None] * (p1[:2] - p0[:2])
         z = np.where(s < 0.5, p0[2] + up * (self.apex_z - p0[2]),
-                     self.apex_z + down * (p1[2] - self.apex_z))
+                     self.apex_z + down * (p1[2] + a - self.apex_z))
+        if a > 0.0:
+            z = z - np.clip(t - self.duration_s, 0.0, self.approach_s) * self.approach_speed_m_s
         return np.concatenate([xy, z[..., None]], axis=-1)
 
 

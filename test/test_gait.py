@@ -64,6 +64,34 @@ def test_swing_clears_a_box_under_its_path():
     assert G.swing_apex(p0, p1, None, 0.02, 0.01, 0.03) == pytest.approx(0.03)
 
 
+def test_swing_final_approach_descends_slowly_over_its_height():
+    p0, p1 = np.array([0.0, 0.0, 0.01]), np.array([0.1, 0.0, 0.0])
+    sw = G.SwingTrajectory(p0, p1, 0.05, 0.35, approach_m=0.02, approach_speed_m_s=0.1)
+    assert sw.approach_s == pytest.approx(0.2) and sw.total_s == pytest.approx(0.55)
+    t = np.linspace(0.0, sw.total_s, 5501)
+    path = sw.position(t)
+    np.testing.assert_allclose(path[0], p0, atol=1e-12)
+    np.testing.assert_allclose(path[-1], p1, atol=1e-12)
+    np.testing.assert_allclose(sw.position(0.35), p1 + [0.0, 0.0, 0.02], atol=1e-12)
+    vz = np.gradient(path[:, 2], t)
+    # the last 2 cm of the way down: at most the approach speed
+    low = (t > 0.2) & (path[:, 2] < p1[2] + 0.02 - 1e-9)
+    assert low.any() and np.all(vz[low] >= -0.1 - 1e-6)
+    assert vz.min() < -0.5                       # the minimum-jerk lowering above it is fast
+    # x-y are at the foothold before the approach starts: the foot comes straight down
+    assert np.all(np.abs(path[low, 0] - p1[0]) < 1e-9)
+    # Without an approach the lowering ends at the foothold at full minimum-jerk speed.
+    plain = G.SwingTrajectory(p0, p1, 0.05, 0.35)
+    assert plain.total_s == 0.35
+    tp = np.linspace(0.0, 0.35, 3501)
+    zp = plain.position(tp)[:, 2]
+    assert np.gradient(zp, tp)[(tp > 0.2) & (zp < p1[2] + 0.02)].min() < -0.3
+    # The approach never starts above the apex.
+    low_apex = G.SwingTrajectory(p0, p1, 0.012, 0.35, approach_m=0.02, approach_speed_m_s=0.1)
+    assert low_apex.approach_height_m == pytest.approx(0.012)
+    assert low_apex.position(low_apex.total_s)[2] == pytest.approx(0.0)
+
+
 def test_swing_apex_reads_a_grid_map():
     g = GridMap.empty(0.01, (0.0, -0.5), (100, 100))
     g[ELEVATION] = np.zeros((100, 100), np.float32)

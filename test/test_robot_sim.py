@@ -163,6 +163,41 @@ def test_touchdown_sensing_stops_a_foot_on_higher_ground():
     assert res.max_tilt_deg < 0.5 * blind.max_tilt_deg
 
 
+def _slab_landing(approach_m: float) -> tuple:
+    """LittleDog crawls 0.3 m; a hidden 3 cm wide slab 2 cm high under one foothold. Returns
+    the largest 20 ms mean of the slab's normal force and the walk's result."""
+    import pybullet
+    from terrain_perception.controller import WalkingConfig
+    m = load_robot_model('littledog')
+    client, plane = make_flat_world(DT)
+    robot = spawn_standing(client, m, dt_s=DT)
+    legs, pos = G.straight_footsteps(m, robot.base_pose(), 0.3)
+    half = [0.015, 0.015, 0.01]
+    slab = client.createMultiBody(0, client.createCollisionShape(
+        pybullet.GEOM_BOX, halfExtents=half), basePosition=[pos[5, 0], pos[5, 1], half[2]])
+    force = []
+    runner = WalkRunner(client, robot, WalkingConfig(plan_timeout_s=1e6,
+                                                     swing_approach_m=approach_m), DT,
+                        ground_id=plane)
+    runner.run(legs, pos, 'walk', max_time_s=60.0, on_step=lambda t: force.append(
+        sum(c[9] for c in client.getContactPoints(bodyA=slab))))
+    res = runner.result()
+    client.disconnect()
+    return float(np.convolve(force, np.ones(10) / 10, 'valid').max()), res
+
+
+def test_a_slow_final_approach_lands_softly_on_ground_higher_than_believed():
+    # The foot meets the slab 2 cm above its believed foothold. Without the approach it hits
+    # it at the minimum-jerk lowering's speed: measured 28.8 N over 20 ms, a kick larger than
+    # the 27 N robot's weight; with a 2 cm approach at 0.15 m/s 15.2 N, the foot's share.
+    soft, res = _slab_landing(0.02)
+    hard, res_hard = _slab_landing(0.0)
+    assert not res.fell and res.steps_done == 12
+    assert not res_hard.fell
+    assert soft < 0.7 * hard
+    assert soft < 20.0
+
+
 def test_touchdown_sensing_lowers_a_hanging_foot_before_the_next_swing():
     # The foothold was planned 2 cm above the real ground: the foot ends its swing in the
     # air; before the next leg lifts, the controller lowers it until it carries weight.
