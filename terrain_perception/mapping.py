@@ -127,7 +127,7 @@ class MapperConfig:
     degeneracy_threshold: float = param(5e-4, 'keep the prior along directions whose normalised '
                                         'point-to-plane information is below this (0 = off)',
                                         0.0, 1.0)
-    degeneracy_noise_gain: float = param(1.0, 'also keep the prior where the information is '
+    degeneracy_noise_gain: float = param(3.0, 'also keep the prior where the information is '
                                          'below this x (rmse / normal_radius_m)^2: the slope '
                                          'noise that height noise of the alignment\'s '
                                          'residual size puts into the model normals (0 = off)',
