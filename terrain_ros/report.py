@@ -188,8 +188,11 @@ def estimated_path(d: RunData) -> Tuple[np.ndarray, np.ndarray, str]:
     return np.zeros(0), np.zeros((0, 4, 4)), ''
 
 
-def sample_cell_mean(terrain: GridMap, grid: GridMap, layer: str = 'elevation') -> np.ndarray:
-    """Mean of ``terrain`` over each cell of ``grid`` (4 x 4 sub-samples per cell), (nx, ny)."""
+def sample_cell_mean(terrain: GridMap, grid: GridMap, layer: str = 'elevation',
+                     T_world_grid: Optional[np.ndarray] = None) -> np.ndarray:
+    """Mean of ``terrain`` over each cell of ``grid`` (4 x 4 sub-samples per cell), (nx, ny).
+    With ``T_world_grid`` (4x4) the sub-sample points are moved by its x-y part (rotation and
+    translation) before sampling: the grid is in a frame that is off the terrain's."""
     xs, ys = grid.cell_centers()
     offs = (np.arange(4) + 0.5) / 4.0 - 0.5
     acc = np.zeros(grid.shape, np.float64)
@@ -197,6 +200,8 @@ def sample_cell_mean(terrain: GridMap, grid: GridMap, layer: str = 'elevation') 
         for oy in offs:
             xy = np.stack(np.meshgrid(xs + ox * grid.resolution_m, ys + oy * grid.resolution_m,
                                       indexing='ij'), axis=-1)
+            if T_world_grid is not None:
+                xy = xy @ T_world_grid[:2, :2].T + T_world_grid[:2, 3]
             acc += terrain.sample(layer, xy)
     return (acc / offs.size ** 2).astype(np.float32)
 
@@ -209,20 +214,53 @@ def observed_mask(grid: GridMap) -> np.ndarray:
     return np.isfinite(elev)
 
 
-def map_errors(grid: GridMap, terrain: GridMap, mask: np.ndarray) -> np.ndarray:
+def map_errors(grid: GridMap, terrain: GridMap, mask: np.ndarray,
+               T_world_grid: Optional[np.ndarray] = None) -> np.ndarray:
     """Height errors [m] (map - truth) of ``grid``'s elevation on ``mask`` cells that lie on
-    the true terrain."""
-    truth = sample_cell_mean(terrain, grid)
-    ok = mask & np.isfinite(truth) & np.isfinite(grid['elevation'])
-    return (grid['elevation'][ok] - truth[ok]).astype(np.float64)
+    the true terrain. ``T_world_grid`` (see :func:`estimate_offsets`) compares each cell with
+    the terrain where the robot's pose error puts it (the map registered to the world by the
+    robot's own estimate error) instead of at the same coordinates."""
+    h = grid['elevation']
+    truth = sample_cell_mean(terrain, grid, T_world_grid=T_world_grid)
+    if T_world_grid is not None:
+        xs, ys = grid.cell_centers()
+        X, Y = np.meshgrid(xs, ys, indexing='ij')
+        r = T_world_grid[2]
+        h = r[0] * X + r[1] * Y + r[2] * h + r[3]
+    ok = mask & np.isfinite(truth) & np.isfinite(h)
+    return (h[ok] - truth[ok]).astype(np.float64)
 
 
-def map_rmse(grid: GridMap, terrain: GridMap, mask: np.ndarray) -> Tuple[float, int]:
-    """Height RMSE [m] of ``grid``'s elevation against the true terrain on ``mask`` cells."""
-    err = map_errors(grid, terrain, mask)
+def map_rmse(grid: GridMap, terrain: GridMap, mask: np.ndarray,
+             T_world_grid: Optional[np.ndarray] = None) -> Tuple[float, int]:
+    """Height RMSE [m] of ``grid``'s elevation against the true terrain on ``mask`` cells
+    (``T_world_grid``: see :func:`map_errors`)."""
+    err = map_errors(grid, terrain, mask, T_world_grid)
     if err.size == 0:
         return float('nan'), 0
     return float(np.sqrt(np.mean(err ** 2))), int(err.size)
+
+
+def estimate_offsets(d: RunData, t: np.ndarray) -> np.ndarray:
+    """``(n, 4, 4)`` = ``T_true T_est^-1`` at stamps ``t``: the robot's estimate error as a
+    map-to-world transform (NaN where a pose is missing). A foot the robot puts at ``p`` in its
+    map lands at ``C p`` in the world, and a map cell at ``p`` built with about the same error
+    shows the terrain at ``C p``; so a foothold's true cost is read at ``C p`` (the map's
+    misregistration, bounded on its own as the localisation error, does not count twice)."""
+    t = np.atleast_1d(np.asarray(t, dtype=float))
+    te, Te, _ = estimated_path(d)
+    if not len(te) or not len(d.gt_t):
+        return np.full((len(t), 4, 4), np.nan)
+    return np.einsum('nij,njk->nik', interp_poses(d.gt_t, d.gt_T, t),
+                     np.linalg.inv(interp_poses(te, Te, t)))
+
+
+def landing_positions(d: RunData, stamps: np.ndarray, xyz: np.ndarray) -> np.ndarray:
+    """``(n, 3)`` world positions where points ``xyz`` the robot aims at in its map frame at
+    ``stamps`` really are (:func:`estimate_offsets`)."""
+    C = estimate_offsets(d, stamps)
+    p = np.asarray(xyz, dtype=float)
+    return np.einsum('nij,nj->ni', C[:, :3, :3], p) + C[:, :3, 3]
 
 
 def true_cost_grid(terrain: GridMap, cost_cfg: CostConfig) -> GridMap:

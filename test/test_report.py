@@ -276,3 +276,36 @@ def test_a_fall_is_explained_from_the_true_poses_joints_and_terrain():
     d.gt_t = d.joint_t = d.dr_t = t[:350]
     d.joint_tau, d.dr_T = d.joint_tau[:350], d.dr_T[:350]
     assert compute_summary(d, model)['fall_analysis'] == []
+
+
+def test_the_map_and_footholds_are_read_where_the_estimate_error_puts_them():
+    # The estimate is 12 mm behind the truth in x and 3 deg off in yaw. A map built through
+    # that estimate shows each rock where the estimate puts it: registered by the estimate
+    # error it matches the terrain exactly, read at the same coordinates it does not.
+    from terrain_perception.grid import GridMap
+    from terrain_ros.report import (estimate_offsets, landing_positions, map_rmse,
+                                    sample_cell_mean)
+    d = RunData(CourseInfo('rocks-6cm', 0, 0.4, 1.0, 1.75, 2.15), 'littledog')
+    d.gt_t = d.dr_t = np.array([0.0, 1.0, 2.0])
+    d.gt_T = np.stack([_pose(0.5 + 0.01 * k, 0.02, 3.0) for k in range(3)])
+    d.dr_T = np.stack([_pose(0.488 + 0.01 * k, 0.02, 0.0) for k in range(3)])
+    C = estimate_offsets(d, np.array([2.0]))[0]
+    np.testing.assert_allclose(C @ d.dr_T[2], d.gt_T[2], atol=1e-12)
+    p = landing_positions(d, np.array([2.0, 2.0]), np.array([[0.508, 0.02, 0.0],
+                                                              [0.7, 0.1, 0.01]]))
+    np.testing.assert_allclose(p[0, :2], d.gt_T[2][:2, 3], atol=1e-12)  # under the base
+    q = np.linalg.inv(d.dr_T[2]) @ [0.7, 0.1, 0.01, 1.0]       # base frame, estimated
+    np.testing.assert_allclose(p[1], (d.gt_T[2] @ q)[:3], atol=1e-12)
+    # True terrain: 4 cm blocks on a 1 mm grid; the map (1 cm) shows it through C^-1.
+    truth = GridMap.empty(0.001, (0.3, -0.3), (600, 600))
+    xs, ys = truth.cell_centers()
+    X, Y = np.meshgrid(xs, ys, indexing='ij')
+    truth['elevation'] = (0.03 * ((np.floor(X / 0.04) + np.floor(Y / 0.04)) % 2)).astype(
+        np.float32)
+    grid = GridMap.empty(0.01, (0.4, -0.2), (40, 40))
+    grid['elevation'] = sample_cell_mean(truth, grid, T_world_grid=C)
+    mask = np.ones(grid.shape, bool)
+    registered, n = map_rmse(grid, truth, mask, C)
+    same_xy, _ = map_rmse(grid, truth, mask)
+    assert n == grid.shape[0] * grid.shape[1]
+    assert registered < 1e-6 < 0.005 < same_xy
