@@ -241,6 +241,11 @@ def map_rmse(grid: GridMap, terrain: GridMap, mask: np.ndarray,
     return float(np.sqrt(np.mean(err ** 2))), int(err.size)
 
 
+def _transform_each(T: np.ndarray, p: np.ndarray) -> np.ndarray:
+    """``(n, 3)``: each point ``p[k]`` moved by its own transform ``T[k]`` (``(n, 4, 4)``)."""
+    return np.einsum('nij,nj->ni', T[:, :3, :3], p) + T[:, :3, 3]
+
+
 def estimate_offsets(d: RunData, t: np.ndarray) -> np.ndarray:
     """``(n, 4, 4)`` = ``T_true T_est^-1`` at stamps ``t``: the robot's estimate error as a
     map-to-world transform (NaN where a pose is missing). A foot the robot puts at ``p`` in its
@@ -260,7 +265,7 @@ def landing_positions(d: RunData, stamps: np.ndarray, xyz: np.ndarray) -> np.nda
     ``stamps`` really are (:func:`estimate_offsets`)."""
     C = estimate_offsets(d, stamps)
     p = np.asarray(xyz, dtype=float)
-    return np.einsum('nij,nj->ni', C[:, :3, :3], p) + C[:, :3, 3]
+    return _transform_each(C, p)
 
 
 def true_cost_grid(terrain: GridMap, cost_cfg: CostConfig) -> GridMap:
@@ -335,9 +340,8 @@ def foothold_belief_error(d: RunData, model, executed: np.ndarray, index: np.nda
     feet_b = forward(model, d.joint_q[index])[np.arange(len(index)), executed[:, 0].astype(int)]
     T_true = interp_poses(d.gt_t, d.gt_T, t)
     T_bel = interp_poses(t_est, T_est, t)
-    p_true = np.einsum('nij,nj->ni', T_true[:, :3, :3], feet_b) + T_true[:, :3, 3]
-    p_bel = np.einsum('nij,nj->ni', T_bel[:, :3, :3], feet_b) + T_bel[:, :3, 3]
-    return np.linalg.norm(p_bel - p_true, axis=1)
+    return np.linalg.norm(_transform_each(T_bel, feet_b) - _transform_each(T_true, feet_b),
+                          axis=1)
 
 
 def planned_footholds(plans: List[dict]) -> np.ndarray:
@@ -605,7 +609,7 @@ def fall_analysis(d: RunData, model, window_s: float = 2.0,
         on = np.nan_to_num(gap, nan=1.0) < CONTACT_GAP_M
         dt = np.maximum(np.gradient(t), 1e-6)
         still = np.linalg.norm(np.gradient(feet, axis=0), axis=-1) / dt[:, None] < FOOT_STILL_MPS
-        com = np.einsum('nij,nj->ni', T[:, :3, :3], com_base(model, q)) + T[:, :3, 3]
+        com = _transform_each(T, com_base(model, q))
         margin = np.full(len(t), np.nan)
         for i in range(len(t)):
             if on[i].sum() >= 2:

@@ -444,7 +444,7 @@ def test_content_after_short_walk(graph):
     steps = np.concatenate([p['steps'] for p in ok_plans] or [np.zeros((0, 5))])
     stamps = np.concatenate([np.full(len(p['steps']), p['stamp']) for p in ok_plans]
                             or [np.zeros(0)])
-    in_map = steps.copy()
+    in_map = steps
     steps = steps.copy()
     steps[:, 1:4] = landing_positions(d, stamps, steps[:, 1:4])
     keep = np.all(np.isfinite(steps[:, 1:4]), axis=1)
