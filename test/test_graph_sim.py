@@ -455,6 +455,20 @@ def test_content_after_short_walk(graph):
     if artifacts:                       # the footholds this test scored, and their true cost
         np.savez(Path(artifacts) / 'footholds.npz', steps=on_rocks, true_cost=chosen_each,
                  truth_cost=truth['cost'], origin=truth.origin_xy, res=truth.resolution_m)
+        # Every plan's steps with their plan and step index, for scoring offline.
+        idx = np.concatenate([np.column_stack([np.full(len(p['steps']), i),
+                                               np.arange(len(p['steps']))])
+                              for i, p in enumerate(ok_plans)] or [np.zeros((0, 2))])
+        np.savez(Path(artifacts) / 'plans.npz', index=idx[keep], stamps=stamps[keep],
+                 in_map=in_map, landing=steps, t_recv=np.array(
+                     [p.get('t_recv', p['stamp']) for p in ok_plans]),
+                 rough=np.array([g.course.rough_x0_m, g.course.rough_x1_m]))
+        d.map_fine.save(Path(artifacts) / 'map_fine_end.npz')
+        if d.map_filled is not None:
+            d.map_filled.save(Path(artifacts) / 'map_filled_end.npz')
+        from terrain_ros.report import executed_footholds
+        np.save(Path(artifacts) / 'executed.npy',
+                executed_footholds(d.joint_t, d.joint_q, d.gt_t, d.gt_T, g.model))
     xs, ys = truth.cell_centers()
     rx = (xs >= g.course.rough_x0_m + 0.05) & (xs <= g.course.rough_x0_m + 0.4)
     ry = np.abs(ys) <= 0.15
