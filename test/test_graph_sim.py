@@ -459,7 +459,10 @@ def test_content_after_short_walk(graph):
         idx = np.concatenate([np.column_stack([np.full(len(p['steps']), i),
                                                np.arange(len(p['steps']))])
                               for i, p in enumerate(ok_plans)] or [np.zeros((0, 2))])
+        obs = np.concatenate([p.get('observed', np.full(len(p['steps']), np.nan))
+                              for p in ok_plans] or [np.zeros(0)])
         np.savez(Path(artifacts) / 'plans.npz', index=idx[keep], stamps=stamps[keep],
+                 observed_at_plan=obs[keep],
                  in_map=in_map, landing=steps, t_recv=np.array(
                      [p.get('t_recv', p['stamp']) for p in ok_plans]),
                  rough=np.array([g.course.rough_x0_m, g.course.rough_x1_m]))

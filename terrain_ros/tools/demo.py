@@ -627,11 +627,33 @@ class Monitor:
             self.latencies_ms.append(1000.0 * (now - images[key]))
         steps = np.array([[f.leg, f.position.x, f.position.y, f.position.z, f.cost]
                           for f in msg.footsteps], dtype=np.float64).reshape(-1, 5)
+        observed = self._observed_at(steps[:, 1:3])
         with self.lock:
             self.plans.append({'stamp': stamp_to_sec(msg.header.stamp),
                                't_recv': self.sim_t, 'status': int(msg.status),
                                'status_text': str(msg.status_text),
-                               'gait': int(msg.gait_mode), 'steps': steps})
+                               'gait': int(msg.gait_mode), 'steps': steps,
+                               'observed': observed})
+
+    _filled_cache = (None, None)
+
+    def _observed_at(self, xy: np.ndarray) -> np.ndarray:
+        """Per point: 1 where the latest ``/map/filled`` (the map a plan is made on) has the
+        cell observed by a camera, 0 where never observed (filled), NaN without that map."""
+        from terrain_ros.conversions import msg_to_grid
+        out = np.full(len(xy), np.nan)
+        msg = self.filled_msg
+        if msg is None or not len(xy):
+            return out
+        if self._filled_cache[0] is not msg:
+            try:
+                self._filled_cache = (msg, msg_to_grid(msg))
+            except ValueError:
+                self._filled_cache = (msg, None)
+        grid = self._filled_cache[1]
+        if grid is None or 'observed' not in grid.layers:
+            return out
+        return grid.sample('observed', xy).astype(np.float64)
 
     # -- live state ---------------------------------------------------------------------------
     def fallen_now(self) -> bool:
