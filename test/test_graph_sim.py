@@ -462,7 +462,9 @@ def test_content_after_short_walk(graph):
         obs = np.concatenate([p.get('observed', np.full(len(p['steps']), np.nan))
                               for p in ok_plans] or [np.zeros(0)])
         np.savez(Path(artifacts) / 'plans.npz', index=idx[keep], stamps=stamps[keep],
-                 observed_at_plan=obs[keep],
+                 observed_at_plan=obs[keep], map_cost_at_plan=np.concatenate(
+                     [p.get('map_cost', np.full(len(p['steps']), np.nan)) for p in ok_plans]
+                     or [np.zeros(0)])[keep],
                  in_map=in_map, landing=steps, t_recv=np.array(
                      [p.get('t_recv', p['stamp']) for p in ok_plans]),
                  rough=np.array([g.course.rough_x0_m, g.course.rough_x1_m]))

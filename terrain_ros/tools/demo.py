@@ -627,33 +627,35 @@ class Monitor:
             self.latencies_ms.append(1000.0 * (now - images[key]))
         steps = np.array([[f.leg, f.position.x, f.position.y, f.position.z, f.cost]
                           for f in msg.footsteps], dtype=np.float64).reshape(-1, 5)
-        observed = self._observed_at(steps[:, 1:3])
+        observed, map_cost = self._observed_at(steps[:, 1:3])
         with self.lock:
             self.plans.append({'stamp': stamp_to_sec(msg.header.stamp),
                                't_recv': self.sim_t, 'status': int(msg.status),
                                'status_text': str(msg.status_text),
                                'gait': int(msg.gait_mode), 'steps': steps,
-                               'observed': observed})
+                               'observed': observed, 'map_cost': map_cost})
 
     _filled_cache = (None, None)
 
-    def _observed_at(self, xy: np.ndarray) -> np.ndarray:
-        """Per point: 1 where the latest ``/map/filled`` (the map a plan is made on) has the
-        cell observed by a camera, 0 where never observed (filled), NaN without that map."""
+    def _observed_at(self, xy: np.ndarray):
+        """Per point, in the latest ``/map/filled`` (the map a plan is made on): 1 where the
+        cell was observed by a camera, 0 where never observed (filled), and its ``cost``; NaN
+        without that map or layer."""
         from terrain_ros.conversions import msg_to_grid
         out = np.full(len(xy), np.nan)
         msg = self.filled_msg
         if msg is None or not len(xy):
-            return out
+            return out, out.copy()
         if self._filled_cache[0] is not msg:
             try:
                 self._filled_cache = (msg, msg_to_grid(msg))
             except ValueError:
                 self._filled_cache = (msg, None)
         grid = self._filled_cache[1]
-        if grid is None or 'observed' not in grid.layers:
-            return out
-        return grid.sample('observed', xy).astype(np.float64)
+        if grid is None:
+            return out, out.copy()
+        return tuple(grid.sample(k, xy).astype(np.float64) if k in grid.layers else out.copy()
+                     for k in ('observed', 'cost'))
 
     # -- live state ---------------------------------------------------------------------------
     def fallen_now(self) -> bool:
