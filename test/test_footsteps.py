@@ -691,3 +691,36 @@ def test_refused_steps_remember_the_controllers_refusals_from_one_stance():
     assert r.refusal(5, fs.RH, p, 15.0) is None
     with pytest.raises(ValueError, match='max_age_s'):
         fs.RefusedSteps(max_age_s=0.0)
+
+
+def test_planner_on_perceived_and_filled_maps_crosses_on_low_cost_footholds():
+    """`terrain-bench plan`'s perceived walk (course seed 1): the planner, fed only what a range
+    sensor on the camera mount saw and Fill-Terrain guessed, crosses the rocks on footholds whose
+    true cost is far below the terrain-blind greedy walk's on the same kind of maps, and the
+    maps held filled never-seen cells (the fill took part)."""
+    from terrain_perception.bench.plan import (PerceivedMaps, load_profile, unsafe_mask,
+                                               walk_course)
+    from terrain_perception.terrain import library_terrains, make_course
+    name, _, cfg, cost_cfg = load_profile()
+    robot = load_robot_model(name)
+    course, truth = make_course('rocks-6cm', 1, 0.01), make_course('rocks-6cm', 1, 0.005)
+    library = [np.asarray(t['elevation'], np.float64)
+               for t in library_terrains(10, 0, 0.01, 0.06)]
+    tcost = features.cost_map(course['elevation'], 0.01, cost_cfg)
+    unsafe = unsafe_mask(truth, robot.foot_radius_m)
+    x1 = course.metadata['rough_extent_xy'][1]
+    out = {}
+    for sel in ('cost', 'nominal'):
+        c = dataclasses.replace(cfg, selection=sel,
+                                max_unevenness=cfg.max_unevenness if sel == 'cost' else 0.0)
+        maps = PerceivedMaps(course, robot, cost_cfg, library)
+        r = walk_course(course, tcost, truth, unsafe, robot, c, cost_cfg, seed=0,
+                        perceived=maps)
+        rough = np.array(r['rough'], bool)
+        assert r['failures'] == 0, r.get('failure')
+        assert r['reached_x'] >= x1, f'{sel}: stopped at x = {r["reached_x"]:.2f} m'
+        out[sel] = float(np.mean(np.array(r['cost'])[rough]))
+        g = maps.grid()
+        inside = np.isfinite(g['elevation'])
+        assert (g['observed'][inside] < 0.5).any() and (g['filled'][inside] > 0.5).any()
+    assert out['cost'] < 0.5 * out['nominal'], out

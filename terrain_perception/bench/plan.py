@@ -19,6 +19,13 @@ Footholds are scored on the clean ground truth: the true (Kolter) cost at the fo
 their local plane by more than half a foot radius RMS over a ~4 foot-radius square) or steeper
 than 30 deg (friction limit atan(1.2) = 50 deg with margin). The bench reports both patch
 rates: whole frame (the paper's ~700/s measure) and the fit stage alone.
+
+Planner on perceived maps (``--perceived-only`` runs just this): the same walks, but each
+replan's map is what a perfect range sensor on the camera mount saw so far (one capture where
+the body stands at each replan and one half-way through the period before; the approach seen
+from 0.15-0.6 m behind the start), filled by the fill node's ``TerrainFiller`` (Fill-Terrain
+under the captures' line-of-sight bounds): the foothold cost perception without stereo error
+allows, and the share of footholds chosen on never-seen (filled) cells.
 """
 
 from __future__ import annotations
@@ -26,6 +33,7 @@ from __future__ import annotations
 import dataclasses
 import time
 from pathlib import Path
+from typing import Optional, Sequence
 
 import numpy as np
 import yaml
@@ -53,6 +61,8 @@ def add_arguments(parser) -> None:
     parser.add_argument('--course', default='rocks-6cm', help='course class (terrain.py)')
     parser.add_argument('--seeds', type=int, default=None, help='number of course seeds')
     parser.add_argument('--frames', type=int, default=None, help='patch frames per course')
+    parser.add_argument('--perceived-only', action='store_true',
+                        help='only the planner on perceived + filled maps')
 
 
 def load_profile(path: Path = CONFIG):
@@ -187,29 +197,81 @@ def _body_xy(robot, feet, yaw):
     return np.mean(feet[:, :2] - np.array(robot.nominal_feet)[:, :2] @ R.T, axis=0)
 
 
+class PerceivedMaps:
+    """Maps as the robot would have them: the cells a perfect range sensor on LittleDog's camera
+    mount saw from every capture so far (``raycast.visible_cells``, 1.5 m range, at their true
+    height), filled by the fill node's :class:`~terrain_perception.fill.TerrainFiller`
+    (Fill-Terrain under the line-of-sight bounds of those captures; cost from ``cost_cfg``).
+    Every cell keeps ``observed`` = seen or not, so the planner can tell fill from sight."""
+
+    def __init__(self, course: GridMap, robot, cost_cfg: features.CostConfig, library):
+        from terrain_perception.fill import TerrainFiller
+        from terrain_perception.mapping import FineHeightMap
+        from terrain_perception.raycast import HeightFieldScene
+        self.course, self.robot = course, robot
+        self.scene = HeightFieldScene(course, nthreads=1)
+        self.fine = FineHeightMap(course.resolution_m, course.shape, course.origin_xy, 'mean')
+        self.filler = TerrainFiller(library, course.resolution_m, cost_config=cost_cfg)
+        self.poses = []
+        self.xs, self.ys = course.cell_centers()
+
+    def capture(self, T_world_base: np.ndarray) -> None:
+        from terrain_perception.raycast import visible_cells
+        T = T_world_base @ self.robot.T_base_camera
+        vis = visible_cells(self.course, T, self.robot.camera, max_range_m=1.5,
+                            scene=self.scene)
+        ii, jj = np.nonzero(vis)
+        if len(ii):
+            self.fine.add(np.c_[self.xs[ii], self.ys[jj], self.course[ELEVATION][ii, jj]], 0.0)
+            self.poses.append(T)
+
+    def grid(self) -> GridMap:
+        return self.filler.update(self.fine.to_grid(stamp_s=float(len(self.poses))),
+                                  np.array(self.poses))
+
+
 def walk_course(course: GridMap, truth_cost: np.ndarray, truth: GridMap, unsafe: np.ndarray,
                 robot,
                 cfg: fs.PlannerConfig, cost_cfg: features.CostConfig, seed: int,
-                max_replans: int = 80, noise_m: float = 0.001):
-    """Walk the course with receding-horizon replanning; returns per-foothold records."""
+                max_replans: int = 80, noise_m: float = 0.001,
+                perceived: Optional[PerceivedMaps] = None):
+    """Walk the course with receding-horizon replanning; returns per-foothold records.
+
+    The map of each replan is a 1.5 m window of the course with ``noise_m`` per cell, or with
+    ``perceived`` what the robot saw and filled: one capture where the body stands at each
+    replan and one half-way through the gait period before it."""
     rng = np.random.default_rng(seed)
     planner = fs.FootstepPlanner(robot, cfg, cost_cfg)
     x0, x1, _, _ = course.metadata['rough_extent_xy']
     goal = np.array([x1 + 0.3, 0.0])
     T = make_T(np.eye(3), [x0 - 0.25, 0.0, robot.standing_height_m])
+    T_prev = None
     feet = None
     next_leg = fs.LH
-    rec = {'cost': [], 'unsafe': [], 'rough': [], 'replan_ms': [], 'replan_wall_ms': [],
-           'cost_ms': [],
+    rec = {'cost': [], 'unsafe': [], 'rough': [], 'seen': [], 'replan_ms': [],
+           'replan_wall_ms': [], 'cost_ms': [],
            'gaits': [], 'failures': 0, 'reached_x': float(T[0, 3])}
+    if perceived is not None:           # it walked up the approach: the ground it stands on
+        for back in (0.6, 0.45, 0.3, 0.15):
+            perceived.capture(make_T(np.eye(3), T[:3, 3] - [back, 0.0, 0.0]))
     for _ in range(max_replans):
-        win = _window(course, T[:2, 3])
-        seen = win[ELEVATION] + rng.normal(0, noise_m, win.shape).astype(np.float32)
-        t = time.process_time()
-        cost = features.cost_map(seen, win.resolution_m, cost_cfg)
-        rec['cost_ms'].append(1e3 * (time.process_time() - t))
-        m = GridMap(win.resolution_m, win.origin_xy, win.shape,
-                    {ELEVATION: seen, 'cost': cost})
+        if perceived is not None:
+            if T_prev is not None:
+                mid = T.copy()
+                mid[:3, 3] = 0.5 * (T[:3, 3] + T_prev[:3, 3])
+                perceived.capture(mid)
+            perceived.capture(T)
+            t = time.process_time()
+            m = perceived.grid()
+            rec['cost_ms'].append(1e3 * (time.process_time() - t))
+        else:
+            win = _window(course, T[:2, 3])
+            seen = win[ELEVATION] + rng.normal(0, noise_m, win.shape).astype(np.float32)
+            t = time.process_time()
+            cost = features.cost_map(seen, win.resolution_m, cost_cfg)
+            rec['cost_ms'].append(1e3 * (time.process_time() - t))
+            m = GridMap(win.resolution_m, win.origin_xy, win.shape,
+                        {ELEVATION: seen, 'cost': cost})
         t, tw = time.process_time(), time.perf_counter()
         bad = planner.set_map(m)
         plan = bad if bad is not None else planner.plan(T, goal, feet=feet, first_leg=next_leg)
@@ -219,6 +281,7 @@ def walk_course(course: GridMap, truth_cost: np.ndarray, truth: GridMap, unsafe:
             break
         if not plan.ok:
             rec['failures'] += 1
+            rec['failure'] = f'{plan.status_text} at x = {T[0, 3]:.2f} m'
             break
         rec['gaits'].append(plan.gait)
         period = 2 if plan.gait == fs.GAIT_TROT else 4
@@ -234,8 +297,10 @@ def walk_course(course: GridMap, truth_cost: np.ndarray, truth: GridMap, unsafe:
             ij = truth.world_to_index(s.position[:2])
             rec['unsafe'].append(bool(unsafe[ij[0], ij[1]]) if truth.inside(ij) else False)
             rec['rough'].append(bool(x0 <= s.position[0] <= x1))
+            rec['seen'].append(bool(m.sample('observed', s.position[None, :2])[0] > 0.5)
+                               if 'observed' in m.layers else True)
         xy = _body_xy(robot, feet, plan.yaw)
-        T = fs.body_pose(xy, feet, plan.yaw, robot)
+        T_prev, T = T, fs.body_pose(xy, feet, plan.yaw, robot)
         rec['reached_x'] = float(T[0, 3])
         if T[0, 3] >= goal[0] - cfg.goal_tolerance_m:
             break
@@ -277,6 +342,58 @@ def bench_planner(courses, truths, robot, cfg, cost_cfg):
     return out
 
 
+def bench_perceived(courses, truths, robot, cfg, cost_cfg) -> dict:
+    """The planner and the terrain-blind greedy baseline on perceived + filled maps
+    (:class:`PerceivedMaps`): the foothold cost perfect perception allows."""
+    from terrain_perception.terrain import library_terrains
+    library = [np.asarray(t[ELEVATION], np.float64)
+               for t in library_terrains(10, 0, courses[0].resolution_m, 0.06,
+                                         cache_dir=REPO_ROOT / 'build' / 'cache'
+                                         / 'fill_library')]
+    out = {}
+    for name, sel in (('planner', 'cost'), ('greedy', 'nominal')):
+        c = dataclasses.replace(cfg, selection=sel,
+                                max_unevenness=cfg.max_unevenness if sel == 'cost' else 0.0)
+        recs = []
+        for k, (course, truth) in enumerate(zip(courses, truths)):
+            tcost = features.cost_map(course[ELEVATION], course.resolution_m, cost_cfg)
+            unsafe = unsafe_mask(truth, robot.foot_radius_m)
+            recs.append(walk_course(course, tcost, truth, unsafe, robot, c, cost_cfg, seed=k,
+                                    perceived=PerceivedMaps(course, robot, cost_cfg, library)))
+        rough = np.concatenate([np.array(r['rough'], bool) for r in recs])
+        cost = np.concatenate([np.array(r['cost']) for r in recs])[rough]
+        unsafe = np.concatenate([np.array(r['unsafe'], bool) for r in recs])[rough]
+        seen = np.concatenate([np.array(r['seen'], bool) for r in recs])[rough]
+        nan = float('nan')
+        out[name] = {
+            'footholds_rough': int(rough.sum()),
+            'true_cost_mean_rough': float(cost.mean()) if cost.size else nan,
+            'true_cost_median_rough': float(np.median(cost)) if cost.size else nan,
+            'unsafe_share_rough': float(unsafe.mean()) if unsafe.size else nan,
+            'on_fill_share_rough': float(np.mean(~seen)) if seen.size else nan,
+            'failures': int(sum(r['failures'] for r in recs)),
+            'crossed': int(sum(r['reached_x'] >= c2.metadata['rough_extent_xy'][1]
+                               for r, c2 in zip(recs, courses))),
+        }
+    return out
+
+
+def print_perceived(R: dict, n_seeds: int) -> None:
+    print('\n== Footstep planner on perceived + filled maps (perfect range sensor on the camera '
+          'mount, Fill-Terrain in the occlusions) ==')
+    print('(footholds over the rough sections; "on fill %" = chosen on a never-seen cell; true '
+          'cost on the true terrain)')
+    print(f'{"strategy":9s} {"footholds":>9s} {"mean":>7s} {"median":>7s} {"on fill %":>9s} '
+          f'{"unsafe %":>8s} {"crossed":>8s} {"failed":>6s}')
+    for name, r in R.items():
+        print(f'{name:9s} {r["footholds_rough"]:9d} {r["true_cost_mean_rough"]:7.4f} '
+              f'{r["true_cost_median_rough"]:7.4f} {100 * r["on_fill_share_rough"]:9.1f} '
+              f'{100 * r["unsafe_share_rough"]:8.2f} {r["crossed"]:5d}/{n_seeds:<2d} '
+              f'{r["failures"]:6d}')
+    print(f'true-cost mean ratio planner / greedy = '
+          f'{R["planner"]["true_cost_mean_rough"] / R["greedy"]["true_cost_mean_rough"]:.3f}')
+
+
 def run(args) -> dict:
     import cv2
     from terrain_perception.terrain import make_course
@@ -286,6 +403,14 @@ def run(args) -> dict:
     frames = args.frames or (4 if quick else 10)
     robot_name, patch_cfg, plan_cfg, cost_cfg = load_profile()
     robot = load_robot_model(robot_name)
+    if args.perceived_only:
+        print(f'terrain-bench plan --perceived-only: {args.course} x {n_seeds} seeds, robot '
+              f'{robot_name}')
+        coarse = [make_course(args.course, s, 0.01) for s in range(n_seeds)]
+        fine = [make_course(args.course, s, 0.005) for s in range(n_seeds)]
+        R = bench_perceived(coarse, fine, robot, plan_cfg, cost_cfg)
+        print_perceived(R, n_seeds)
+        return {'perceived': R, 'course': args.course, 'seeds': n_seeds}
     print(f'terrain-bench plan: {args.course} x {n_seeds} seeds, robot {robot_name}, '
           f'{"quick" if quick else "full"} run (cv2 threads 1)')
     fine = [make_course(args.course, s, 0.005) for s in range(n_seeds)]
@@ -350,6 +475,8 @@ def run(args) -> dict:
         shares.append(unsafe_mask(f, robot.foot_radius_m)[(xs >= x0) & (xs <= x1)].mean())
     unsafe_all = float(np.mean(shares))
     print(f'share of unsafe cells in the rough sections: {100 * unsafe_all:.1f} %')
+    R = bench_perceived(coarse, fine, robot, plan_cfg, cost_cfg)
+    print_perceived(R, n_seeds)
     return {
         'patches_per_s': P['patches_per_s'],
         'patches_fitted_per_s_stage4': P['patches_fitted_per_s_stage4'],
@@ -363,5 +490,6 @@ def run(args) -> dict:
         'patch_stats': P['stats'],
         'planner': Q,
         'unsafe_cell_share_rough': float(unsafe_all),
+        'perceived': R,
         'course': args.course, 'seeds': n_seeds, 'frames_per_course': frames,
     }
