@@ -472,6 +472,8 @@ def test_content_after_short_walk(graph):
         if d.map_filled is not None:
             d.map_filled.save(Path(artifacts) / 'map_filled_end.npz')
         from terrain_ros.report import executed_footholds
+        np.savez(Path(artifacts) / 'poses.npz', gt_t=d.gt_t, gt_T=d.gt_T, icp_t=d.icp_t,
+                 icp_T=d.icp_T, dr_t=d.dr_t, dr_T=d.dr_T, corr_t=d.corr_t, corr_T=d.corr_T)
         np.save(Path(artifacts) / 'executed.npy',
                 executed_footholds(d.joint_t, d.joint_q, d.gt_t, d.gt_T, g.model))
     xs, ys = truth.cell_centers()
