@@ -450,6 +450,10 @@ def test_content_after_short_walk(graph):
     keep = np.all(np.isfinite(steps[:, 1:4]), axis=1)
     steps, in_map = steps[keep], in_map[keep]
     rocks = (steps[:, 1] >= g.course.rough_x0_m + 0.02) & (steps[:, 1] <= g.course.rough_x1_m)
+    # how far the localisation error moved each foothold (a 60 mm jump failed one run)
+    shift = np.linalg.norm(steps[rocks, 1:3] - in_map[rocks, 1:3], axis=1)
+    stamps_kept = stamps[keep][rocks]
+    worst = int(np.argmax(shift)) if len(shift) else 0
     on_rocks = steps[rocks]
     chosen_each = truth.sample('cost', on_rocks[:, 1:3])
     if artifacts:                       # the footholds this test scored, and their true cost
@@ -496,7 +500,10 @@ def test_content_after_short_walk(graph):
                             f'(footholds: {len(on_rocks)}, '
                             f'above the rocks\' mean: {np.mean(chosen_each > typical):.0%}; '
                             f'read at the map coordinates instead: '
-                            f'{np.nanmean(truth.sample("cost", in_map[rocks, 1:3])):.3f})')
+                            f'{np.nanmean(truth.sample("cost", in_map[rocks, 1:3])):.3f}; '
+                            f'the pose estimate put them {np.median(shift) * 1e3:.0f} mm off '
+                            f'in the median, {shift[worst] * 1e3:.0f} mm at '
+                            f'{stamps_kept[worst]:.1f} s sim)')
     if fall_mask(d.gt_T[-50:], d.true_terrain, g.model.body_size_m).any():
         failures.append('fell')
     assert not failures, 'content not within bounds:\n  ' + '\n  '.join(failures)
