@@ -179,6 +179,13 @@ class MapperConfig:
     cell_outlier_gate_m: float = param(0.015, 'per capture, samples farther than this [m] from '
                                        'their cell\'s mean are dropped (0 = keep all)',
                                        0.0, 1.0)
+    isolated_max_count: int = param(
+        2, 'a published cell of at most this many samples whose observed 8-neighbours are '
+        'fewer than isolated_min_neighbours, or whose height is more than isolated_gate_m from '
+        'their median, is published as unobserved (a lone stereo mismatch; its samples are '
+        'kept and count once more arrive); 0 = publish every cell', 0, 1000000)
+    isolated_min_neighbours: int = param(2, 'see isolated_max_count', 0, 8)
+    isolated_gate_m: float = param(0.05, 'see isolated_max_count [m]', 0.0, 100.0)
     line_of_sight_tolerance_m: float = param(
         0.1, 'a point is not fused when the ray from the camera to it passes more than this '
         '[m] below a cell the fine map has already observed, in the last half of its length: '
@@ -845,6 +852,33 @@ class FineHeightMap:
                        frame_id=frame_id, stamp_s=stamp_s)
 
 
+def isolated_cells(grid: GridMap, max_count: int, min_neighbours: int,
+                   gate_m: float) -> np.ndarray:
+    """bool ``(nx, ny)``: observed cells of at most ``max_count`` samples (layer ``count``)
+    with fewer than ``min_neighbours`` observed cells among their 8 neighbours, or whose
+    height differs by more than ``gate_m`` from the median of those neighbours: lone stereo
+    mismatches, which a per-cell gate cannot see (one sample has nothing to disagree with).
+    A cell with more samples is never flagged."""
+    h = np.asarray(grid[ELEVATION], np.float64)
+    obs = (grid[OBSERVED] > 0.5) & np.isfinite(h) if OBSERVED in grid else np.isfinite(h)
+    few = obs & (np.asarray(grid[COUNT]) <= max_count) if COUNT in grid else obs
+    out = np.zeros(h.shape, bool)
+    if not few.any():
+        return out
+    ii, jj = np.nonzero(few)
+    hp = np.pad(np.where(obs, h, np.nan), 1, constant_values=np.nan)
+    nb = np.stack([hp[ii + 1 + di, jj + 1 + dj] for di in (-1, 0, 1) for dj in (-1, 0, 1)
+                   if di or dj], axis=1)
+    n = np.sum(np.isfinite(nb), axis=1)
+    med = np.full(len(ii), np.nan)
+    has = n > 0
+    if has.any():
+        med[has] = np.nanmedian(nb[has], axis=1)
+    with np.errstate(invalid='ignore'):
+        out[ii, jj] = (n < min_neighbours) | (np.abs(h[ii, jj] - med) > gate_m)
+    return out
+
+
 class IcpMapper:
     """Dead-reckoning-seeded point-to-plane ICP localisation with a coarse and a fine model.
 
@@ -912,6 +946,15 @@ class IcpMapper:
         """The fine height map (see :meth:`FineHeightMap.to_grid`); capture poses ride along
         in ``metadata['capture_poses']`` as flat row-major 4x4 lists."""
         grid = self.fine.to_grid(frame_id, self._last_stamp if self._poses else 0.0)
+        c = self.config
+        if c.isolated_max_count > 0:
+            lone = isolated_cells(grid, c.isolated_max_count, c.isolated_min_neighbours,
+                                  c.isolated_gate_m)
+            if lone.any():
+                self.counters['isolated_cells_hidden'] += int(lone.sum())
+                for name in grid.layers:
+                    layer = grid[name]
+                    layer[lone] = 0.0 if name in (OBSERVED, COUNT) else np.nan
         stamps, poses = self.capture_poses()
         grid.metadata['capture_stamps'] = [float(t) for t in stamps]
         grid.metadata['capture_poses'] = [p.reshape(-1).tolist() for p in poses]

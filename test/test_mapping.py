@@ -452,7 +452,9 @@ def test_points_seen_through_known_ground_are_not_fused(terrain):
     g, scene = terrain
     results = {}
     for tol in (0.1, 0.0):
-        m = mp.IcpMapper(dataclasses.replace(CONFIG, line_of_sight_tolerance_m=tol), T_BC)
+        # (the lone-cell filter off: it hides such sunk cells too, and this test is the ray's)
+        m = mp.IcpMapper(dataclasses.replace(CONFIG, line_of_sight_tolerance_m=tol,
+                                             isolated_max_count=0), T_BC)
         fine, src = m.prepare(cloud_at(scene, T0))
         m.fuse(fine, src, T0 @ T_BC, T0, 0.0)
         full = cloud_at(scene, T1)
@@ -579,3 +581,39 @@ def test_fine_map_kernels_equal_the_numpy_code(gate, weighted):
                 np.testing.assert_array_equal(got[True], got[False])
     for k in mp.FineHeightMap._STATS:
         np.testing.assert_array_equal(odd[True][5][k], odd[False][5][k], err_msg=k)
+
+
+def test_lone_single_sample_cells_are_published_unobserved_and_kept():
+    """The graph test's failure shape: flat ground observed densely (4 samples per cell), a
+    pair of single-sample cells 0.75 m below it off the observed area, one single-sample cell
+    0.14 m above it inside, one single-sample cell at ground height on the area's edge, and a
+    real 10 cm step observed 5 times (on a ground cell: 9 samples). The published map hides exactly the three mismatches;
+    their samples stay in the statistics (a later sample makes them count)."""
+    m = mp.IcpMapper(CONFIG, T_BC)
+    res = m.fine.resolution_m
+    xs = (np.arange(40) + 0.5) * res                       # cells 0..39 from the origin
+    X, Y = np.meshgrid(xs, xs[:20], indexing='ij')
+    o = m.fine.origin_xy
+    hole = (X.ravel() == xs[10]) & (Y.ravel() == xs[10])     # cell (10, 10) not seen
+    ground = np.c_[X.ravel() + o[0], Y.ravel() + o[1], np.zeros(X.size)][~hole]
+    m.fine.add(np.repeat(ground, 4, axis=0), 0.0)
+    def cell(i, j, z, n=1):
+        return np.repeat([[o[0] + (i + 0.5) * res, o[1] + (j + 0.5) * res, z]], n, axis=0)
+    m.fine.add(np.r_[cell(30, 35, -0.75), cell(31, 35, -0.75),   # lone pair off the area
+                     cell(10, 10, 0.14, 2),                       # inside, 2 samples
+                     cell(20, 20, 0.001),                         # edge, ground height
+                     cell(5, 19, 0.10, 5)], 1.0)                  # real step, 5 more samples
+    g = m.fine_grid()
+    obs = g[OBSERVED] > 0.5
+    assert not obs[30, 35] and not obs[31, 35] and not obs[10, 10]
+    assert np.isnan(g[ELEVATION][[30, 31, 10], [35, 35, 10]]).all()
+    assert obs[20, 20] and obs[5, 19] and g[ELEVATION][5, 19] > 0.01
+    assert int(obs.sum()) == 40 * 20 - 1 + 1              # the ground - (10, 10) + edge cell
+    assert m.counters['isolated_cells_hidden'] == 3
+    # samples kept: the 0.14 m cell's two samples are in the statistics, and one more sample
+    # at the same height makes it a 3-sample cell that is published
+    m.fine.add(cell(10, 10, 0.14), 2.0)
+    assert m.fine_grid()[OBSERVED][10, 10] > 0.5
+    off = mp.IcpMapper(dataclasses.replace(CONFIG, isolated_max_count=0), T_BC)
+    off.fine = m.fine
+    assert off.fine_grid()[OBSERVED][30, 35] > 0.5
