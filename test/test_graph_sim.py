@@ -55,6 +55,13 @@ LAUNCH_ARGS = {'course': 'rocks-6cm', 'seed': '1', 'image_scale': '0.5', 'shadow
 #: The content test walks on until the body is this far into the rocks, so that the robot has
 #: planned footholds on them [m].
 INTO_ROCKS_M = 0.1
+#: The content test's bound on the true cost of the footholds planned on the rocks, median and
+#: mean, as a share of the rocks' mean cost (what stepping blind gets: `terrain-bench plan`'s
+#: greedy and random footholds cost about as much as the rocks' mean). For scale: the planner
+#: on perfect perception gets 0.2 (median, `terrain-bench plan`, perceived maps); eleven runs
+#: of this test on the stereo map got medians 0.30-0.49 (the one failed run 0.59, its
+#: localisation 60 mm off) and means 0.38-0.53 (docs/CLOSED_LOOP.md, twenty-third session).
+FOOTHOLD_COST_BOUND = 0.6
 #: Controller override for the stop test: a plan older than this starts no new step [s sim].
 PLAN_TIMEOUT_S = 2.0
 #: The launcher waits this long before respawning the killed stereo node [s wall].
@@ -488,14 +495,13 @@ def test_content_after_short_walk(graph):
     if len(on_rocks) < 4:
         failures.append(f'only {len(on_rocks)} planned footholds on the rocks')
     else:
-        # The typical foothold (median) at most half the rocks' mean, and the few bad ones may
-        # not drag the mean above 0.6 of it: the mean alone sat at its bound (0.30-0.37 against
-        # 0.363 in passing and failing runs alike, a handful of footholds deciding).
+        # Median and mean at most FOOTHOLD_COST_BOUND x the rocks' mean (see there).
         chosen = float(np.nanmean(chosen_each))
         median = float(np.nanmedian(chosen_each))
-        if median > 0.5 * typical or chosen > 0.6 * typical:
-            failures.append(f'planned footholds cost {median:.3f} median (bound 0.5 x the '
-                            f'rocks\' mean), {chosen:.3f} mean (bound 0.6 x) on the true '
+        k = FOOTHOLD_COST_BOUND
+        if median > k * typical or chosen > k * typical:
+            failures.append(f'planned footholds cost {median:.3f} median, {chosen:.3f} mean '
+                            f'(bound {k} x the rocks\' mean for both) on the true '
                             f'terrain, the rocks around them {typical:.3f} on average '
                             f'(footholds: {len(on_rocks)}, '
                             f'above the rocks\' mean: {np.mean(chosen_each > typical):.0%}; '
@@ -504,6 +510,14 @@ def test_content_after_short_walk(graph):
                             f'the pose estimate put them {np.median(shift) * 1e3:.0f} mm off '
                             f'in the median, {shift[worst] * 1e3:.0f} mm at '
                             f'{stamps_kept[worst]:.1f} s sim)')
+    # Localisation over the whole walk: a jump of the estimate (60 mm in one run) is named as
+    # such, not only through the footholds it moves (passing runs: 4-13 mm at worst).
+    T_true = interp_poses(d.gt_t, d.gt_T, d.icp_t)
+    err_all = np.linalg.norm(d.icp_T[:, :3, 3] - T_true[:, :3, 3], axis=1)
+    if np.nanmax(err_all) > 0.02:
+        k = int(np.nanargmax(err_all))
+        failures.append(f'ICP pose error {err_all[k] * 1000:.1f} mm > 20 mm at '
+                        f'{d.icp_t[k]:.1f} s sim ({err_all[-1] * 1000:.1f} mm at the end)')
     if fall_mask(d.gt_T[-50:], d.true_terrain, g.model.body_size_m).any():
         failures.append('fell')
     assert not failures, 'content not within bounds:\n  ' + '\n  '.join(failures)
