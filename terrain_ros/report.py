@@ -191,8 +191,9 @@ def estimated_path(d: RunData) -> Tuple[np.ndarray, np.ndarray, str]:
 def sample_cell_mean(terrain: GridMap, grid: GridMap, layer: str = 'elevation',
                      T_world_grid: Optional[np.ndarray] = None) -> np.ndarray:
     """Mean of ``terrain`` over each cell of ``grid`` (4 x 4 sub-samples per cell), (nx, ny).
-    With ``T_world_grid`` (4x4) the sub-sample points are moved by its x-y part (rotation and
-    translation) before sampling: the grid is in a frame that is off the terrain's."""
+    With ``T_world_grid`` (4x4, or one per cell ``(nx, ny, 4, 4)``) the sub-sample points are
+    moved by its x-y part (rotation and translation) before sampling: the grid is in a frame
+    that is off the terrain's."""
     xs, ys = grid.cell_centers()
     offs = (np.arange(4) + 0.5) / 4.0 - 0.5
     acc = np.zeros(grid.shape, np.float64)
@@ -201,7 +202,8 @@ def sample_cell_mean(terrain: GridMap, grid: GridMap, layer: str = 'elevation',
             xy = np.stack(np.meshgrid(xs + ox * grid.resolution_m, ys + oy * grid.resolution_m,
                                       indexing='ij'), axis=-1)
             if T_world_grid is not None:
-                xy = xy @ T_world_grid[:2, :2].T + T_world_grid[:2, 3]
+                T = np.asarray(T_world_grid)
+                xy = np.einsum('...ij,...j->...i', T[..., :2, :2], xy) + T[..., :2, 3]
             acc += terrain.sample(layer, xy)
     return (acc / offs.size ** 2).astype(np.float32)
 
@@ -219,13 +221,14 @@ def map_errors(grid: GridMap, terrain: GridMap, mask: np.ndarray,
     """Height errors [m] (map - truth) of ``grid``'s elevation on ``mask`` cells that lie on
     the true terrain. ``T_world_grid`` (see :func:`estimate_offsets`) compares each cell with
     the terrain where the robot's pose error puts it (the map registered to the world by the
-    robot's own estimate error) instead of at the same coordinates."""
+    robot's own estimate error) instead of at the same coordinates; one per cell
+    ``(nx, ny, 4, 4)`` (:func:`cell_offsets`) uses each cell's own."""
     h = grid['elevation']
     truth = sample_cell_mean(terrain, grid, T_world_grid=T_world_grid)
     if T_world_grid is not None:
         xs, ys = grid.cell_centers()
         X, Y = np.meshgrid(xs, ys, indexing='ij')
-        r = T_world_grid[2]
+        r = np.moveaxis(np.asarray(T_world_grid)[..., 2, :], -1, 0)
         h = r[0] * X + r[1] * Y + r[2] * h + r[3]
     ok = mask & np.isfinite(truth) & np.isfinite(h)
     return (h[ok] - truth[ok]).astype(np.float64)
@@ -258,6 +261,26 @@ def estimate_offsets(d: RunData, t: np.ndarray) -> np.ndarray:
         return np.full((len(t), 4, 4), np.nan)
     return np.einsum('nij,njk->nik', interp_poses(d.gt_t, d.gt_T, t),
                      np.linalg.inv(interp_poses(te, Te, t)))
+
+
+def cell_offsets(d: RunData, grid: GridMap, mask: np.ndarray) -> np.ndarray:
+    """``(nx, ny, 4, 4)``: for each ``mask`` cell of ``grid``, the estimate error
+    (:func:`estimate_offsets`) at the stamp the cell was last seen (layer ``last_seen``): its
+    height was placed through the pose estimate of its captures, whose error drifts during a
+    walk, so one pose's error (the last ICP pose's, say, tilted by a few tenths of a degree)
+    misregisters the cells seen at other times. Identity elsewhere and where no pose is known.
+    Raises ValueError if the grid has no ``last_seen`` layer."""
+    if 'last_seen' not in grid.layers:
+        raise ValueError(f"the grid has no 'last_seen' layer (layers: {sorted(grid.layers)})")
+    out = np.broadcast_to(np.eye(4), grid.shape + (4, 4)).copy()
+    stamps = np.asarray(grid['last_seen'], np.float64)
+    sel = np.asarray(mask, bool) & np.isfinite(stamps)
+    if sel.any():
+        C = estimate_offsets(d, stamps[sel])
+        good = np.all(np.isfinite(C), axis=(1, 2))
+        ii, jj = np.nonzero(sel)
+        out[ii[good], jj[good]] = C[good]
+    return out
 
 
 def landing_positions(d: RunData, stamps: np.ndarray, xyz: np.ndarray) -> np.ndarray:

@@ -309,3 +309,46 @@ def test_the_map_and_footholds_are_read_where_the_estimate_error_puts_them():
     same_xy, _ = map_rmse(grid, truth, mask)
     assert n == grid.shape[0] * grid.shape[1]
     assert registered < 1e-6 < 0.005 < same_xy
+
+
+def test_each_map_cell_is_registered_by_the_estimate_error_of_when_it_was_seen():
+    # The estimate drifts: 10 mm behind and level at t = 1 s, then 25 mm behind and pitched
+    # 0.5 deg at t = 2 s. Cells x < 0.6 m were last seen at 1 s, the rest at 2 s, each through
+    # the estimate of its time. Per-cell registration matches the terrain exactly; the last
+    # pose's error alone misplaces the early cells (and tilts them by the late pitch).
+    from terrain_perception.grid import GridMap
+    from terrain_ros.report import cell_offsets, estimate_offsets, map_rmse, sample_cell_mean
+    d = RunData(CourseInfo('rocks-6cm', 0, 0.4, 1.0, 1.75, 2.15), 'littledog')
+    d.gt_t = d.dr_t = np.array([0.0, 1.0, 2.0])
+    d.gt_T = np.stack([_pose(0.5 + 0.05 * k, 0.0, 0.0) for k in range(3)])
+    est = [_pose(0.5, 0.0, 0.0), _pose(0.54, 0.0, 0.0), _pose(0.575, 0.0, 0.0)]
+    p = np.radians(0.5)
+    est[2][:3, :3] = [[np.cos(p), 0, np.sin(p)], [0, 1, 0], [-np.sin(p), 0, np.cos(p)]]
+    d.dr_T = np.stack(est)
+    truth = GridMap.empty(0.001, (0.3, -0.3), (600, 600))
+    xs, ys = truth.cell_centers()
+    X, Y = np.meshgrid(xs, ys, indexing='ij')
+    truth['elevation'] = (0.03 * ((np.floor(X / 0.04) + np.floor(Y / 0.04)) % 2)).astype(
+        np.float32)
+    grid = GridMap.empty(0.01, (0.4, -0.2), (40, 40))
+    gx, _ = grid.cell_centers()
+    grid['last_seen'] = np.where(gx[:, None] < 0.6, 1.0, 2.0) + np.zeros(grid.shape, np.float32)
+    mask = np.ones(grid.shape, bool)
+    C_cells = cell_offsets(d, grid, mask)
+    for t in (1.0, 2.0):                         # what the map shows: the terrain through C^-1
+        C = estimate_offsets(d, np.array([t]))[0]
+        sel = grid['last_seen'] == t
+        Xg, Yg = np.meshgrid(*grid.cell_centers(), indexing='ij')
+        h_world = sample_cell_mean(truth, grid, T_world_grid=C)
+        # the map height whose world height (C applied) is the truth there
+        r = C[2]
+        grid['elevation'][sel] = ((h_world - r[0] * Xg - r[1] * Yg - r[3]) / r[2])[sel]
+        np.testing.assert_allclose(C_cells[sel], np.broadcast_to(C, (int(sel.sum()), 4, 4)))
+    per_cell, n = map_rmse(grid, truth, mask, C_cells)
+    last_only, _ = map_rmse(grid, truth, mask, estimate_offsets(d, np.array([2.0]))[0])
+    assert n == grid.shape[0] * grid.shape[1]
+    assert per_cell < 1e-6 and last_only > 0.003, (per_cell, last_only)
+    np.testing.assert_array_equal(cell_offsets(d, grid, ~mask), np.broadcast_to(
+        np.eye(4), grid.shape + (4, 4)))
+    with pytest.raises(ValueError, match='last_seen'):
+        cell_offsets(d, GridMap.empty(0.01, (0.4, -0.2), (4, 4)), mask[:4, :4])
