@@ -25,7 +25,9 @@ replan's map is what a perfect range sensor on the camera mount saw so far (one 
 the body stands at each replan and one half-way through the period before; the approach seen
 from 0.15-0.6 m behind the start), filled by the fill node's ``TerrainFiller`` (Fill-Terrain
 under the captures' line-of-sight bounds): the foothold cost perception without stereo error
-allows, and the share of footholds chosen on never-seen (filled) cells.
+allows, and the share of footholds chosen on never-seen (filled) cells. ``--body-yaw feet``
+places the body after each period at the stance feet's heading, as the walking controller does,
+instead of the plan's, and the largest heading and sideways drift per seed show what that does.
 """
 
 from __future__ import annotations
@@ -42,6 +44,7 @@ from terrain_perception import features
 from terrain_perception import footsteps as fs
 from terrain_perception.camera import PinholeCamera
 from terrain_perception.config import make_config
+from terrain_perception.gait import body_pose_from_feet
 from terrain_perception.grid import ELEVATION, GridMap, crop_or_pad
 from terrain_perception.patches import (PatchConfig, find_patches, gravity_in_camera,
                                         use_compiled_kernels)
@@ -63,6 +66,9 @@ def add_arguments(parser) -> None:
     parser.add_argument('--frames', type=int, default=None, help='patch frames per course')
     parser.add_argument('--perceived-only', action='store_true',
                         help='only the planner on perceived + filled maps')
+    parser.add_argument('--body-yaw', choices=('plan', 'feet'), default='plan',
+                        help="with --perceived-only: the body's heading after each period, "
+                             "the plan's or the stance feet's (as the walking controller)")
 
 
 def load_profile(path: Path = CONFIG):
@@ -234,12 +240,18 @@ def walk_course(course: GridMap, truth_cost: np.ndarray, truth: GridMap, unsafe:
                 robot,
                 cfg: fs.PlannerConfig, cost_cfg: features.CostConfig, seed: int,
                 max_replans: int = 80, noise_m: float = 0.001,
-                perceived: Optional[PerceivedMaps] = None):
-    """Walk the course with receding-horizon replanning; returns per-foothold records.
+                perceived: Optional[PerceivedMaps] = None, body_yaw: str = 'plan'):
+    """Walk the course with receding-horizon replanning; returns per-foothold records (and
+    per period the body's ``yaw_deg`` and ``y``).
 
     The map of each replan is a 1.5 m window of the course with ``noise_m`` per cell, or with
     ``perceived`` what the robot saw and filled: one capture where the body stands at each
-    replan and one half-way through the gait period before it."""
+    replan and one half-way through the gait period before it. After each period the body
+    stands over the feet at the plan's heading (``body_yaw='plan'``) or, as the walking
+    controller places it, at the stance feet's (``'feet'``: hind-feet midpoint to front-feet
+    midpoint, ``gait.body_pose_from_feet``)."""
+    if body_yaw not in ('plan', 'feet'):
+        raise ValueError(f"body_yaw must be 'plan' or 'feet', got {body_yaw!r}")
     rng = np.random.default_rng(seed)
     planner = fs.FootstepPlanner(robot, cfg, cost_cfg)
     x0, x1, _, _ = course.metadata['rough_extent_xy']
@@ -248,7 +260,8 @@ def walk_course(course: GridMap, truth_cost: np.ndarray, truth: GridMap, unsafe:
     T_prev = None
     feet = None
     next_leg = fs.LH
-    rec = {'cost': [], 'unsafe': [], 'rough': [], 'seen': [], 'replan_ms': [],
+    rec = {'cost': [], 'unsafe': [], 'rough': [], 'seen': [], 'yaw_deg': [], 'y': [],
+           'replan_ms': [],
            'replan_wall_ms': [], 'cost_ms': [],
            'gaits': [], 'failures': 0, 'reached_x': float(T[0, 3])}
     if perceived is not None:           # it walked up the approach: the ground it stands on
@@ -299,8 +312,12 @@ def walk_course(course: GridMap, truth_cost: np.ndarray, truth: GridMap, unsafe:
             rec['rough'].append(bool(x0 <= s.position[0] <= x1))
             rec['seen'].append(bool(m.sample('observed', s.position[None, :2])[0] > 0.5)
                                if 'observed' in m.layers else True)
-        xy = _body_xy(robot, feet, plan.yaw)
-        T_prev, T = T, fs.body_pose(xy, feet, plan.yaw, robot)
+        yaw = (plan.yaw if body_yaw == 'plan'
+               else float(body_pose_from_feet(feet, robot.standing_height_m)[3]))
+        xy = _body_xy(robot, feet, yaw)
+        T_prev, T = T, fs.body_pose(xy, feet, yaw, robot)
+        rec['yaw_deg'].append(float(np.degrees(yaw)))
+        rec['y'].append(float(T[1, 3]))
         rec['reached_x'] = float(T[0, 3])
         if T[0, 3] >= goal[0] - cfg.goal_tolerance_m:
             break
@@ -342,9 +359,10 @@ def bench_planner(courses, truths, robot, cfg, cost_cfg):
     return out
 
 
-def bench_perceived(courses, truths, robot, cfg, cost_cfg) -> dict:
+def bench_perceived(courses, truths, robot, cfg, cost_cfg, body_yaw: str = 'plan') -> dict:
     """The planner and the terrain-blind greedy baseline on perceived + filled maps
-    (:class:`PerceivedMaps`): the foothold cost perfect perception allows."""
+    (:class:`PerceivedMaps`): the foothold cost perfect perception allows; ``body_yaw`` as in
+    :func:`walk_course`."""
     from terrain_perception.terrain import library_terrains
     library = [np.asarray(t[ELEVATION], np.float64)
                for t in library_terrains(10, 0, courses[0].resolution_m, 0.06,
@@ -359,11 +377,14 @@ def bench_perceived(courses, truths, robot, cfg, cost_cfg) -> dict:
             tcost = features.cost_map(course[ELEVATION], course.resolution_m, cost_cfg)
             unsafe = unsafe_mask(truth, robot.foot_radius_m)
             recs.append(walk_course(course, tcost, truth, unsafe, robot, c, cost_cfg, seed=k,
-                                    perceived=PerceivedMaps(course, robot, cost_cfg, library)))
+                                    perceived=PerceivedMaps(course, robot, cost_cfg, library),
+                                    body_yaw=body_yaw))
         rough = np.concatenate([np.array(r['rough'], bool) for r in recs])
         cost = np.concatenate([np.array(r['cost']) for r in recs])[rough]
         unsafe = np.concatenate([np.array(r['unsafe'], bool) for r in recs])[rough]
         seen = np.concatenate([np.array(r['seen'], bool) for r in recs])[rough]
+        max_yaw = [float(np.max(np.abs(r['yaw_deg']))) if r['yaw_deg'] else 0.0 for r in recs]
+        max_y = [float(np.max(np.abs(r['y']))) if r['y'] else 0.0 for r in recs]
         nan = float('nan')
         out[name] = {
             'footholds_rough': int(rough.sum()),
@@ -371,6 +392,7 @@ def bench_perceived(courses, truths, robot, cfg, cost_cfg) -> dict:
             'true_cost_median_rough': float(np.median(cost)) if cost.size else nan,
             'unsafe_share_rough': float(unsafe.mean()) if unsafe.size else nan,
             'on_fill_share_rough': float(np.mean(~seen)) if seen.size else nan,
+            'max_abs_yaw_deg': max_yaw, 'max_abs_y_m': max_y,
             'failures': int(sum(r['failures'] for r in recs)),
             'crossed': int(sum(r['reached_x'] >= c2.metadata['rough_extent_xy'][1]
                                for r, c2 in zip(recs, courses))),
@@ -378,9 +400,9 @@ def bench_perceived(courses, truths, robot, cfg, cost_cfg) -> dict:
     return out
 
 
-def print_perceived(R: dict, n_seeds: int) -> None:
+def print_perceived(R: dict, n_seeds: int, body_yaw: str = 'plan') -> None:
     print('\n== Footstep planner on perceived + filled maps (perfect range sensor on the camera '
-          'mount, Fill-Terrain in the occlusions) ==')
+          f'mount, Fill-Terrain in the occlusions; body at the {body_yaw}\'s yaw) ==')
     print('(footholds over the rough sections; "on fill %" = chosen on a never-seen cell; true '
           'cost on the true terrain)')
     print(f'{"strategy":9s} {"footholds":>9s} {"mean":>7s} {"median":>7s} {"on fill %":>9s} '
@@ -392,6 +414,10 @@ def print_perceived(R: dict, n_seeds: int) -> None:
               f'{r["failures"]:6d}')
     print(f'true-cost mean ratio planner / greedy = '
           f'{R["planner"]["true_cost_mean_rough"] / R["greedy"]["true_cost_mean_rough"]:.3f}')
+    r = R['planner']
+    print('planner heading, largest |yaw| per seed [deg]: '
+          + ', '.join(f'{v:.1f}' for v in r['max_abs_yaw_deg'])
+          + '; largest |y| per seed [m]: ' + ', '.join(f'{v:.3f}' for v in r['max_abs_y_m']))
 
 
 def run(args) -> dict:
@@ -408,9 +434,10 @@ def run(args) -> dict:
               f'{robot_name}')
         coarse = [make_course(args.course, s, 0.01) for s in range(n_seeds)]
         fine = [make_course(args.course, s, 0.005) for s in range(n_seeds)]
-        R = bench_perceived(coarse, fine, robot, plan_cfg, cost_cfg)
-        print_perceived(R, n_seeds)
-        return {'perceived': R, 'course': args.course, 'seeds': n_seeds}
+        R = bench_perceived(coarse, fine, robot, plan_cfg, cost_cfg, args.body_yaw)
+        print_perceived(R, n_seeds, args.body_yaw)
+        return {'perceived': R, 'body_yaw': args.body_yaw, 'course': args.course,
+                'seeds': n_seeds}
     print(f'terrain-bench plan: {args.course} x {n_seeds} seeds, robot {robot_name}, '
           f'{"quick" if quick else "full"} run (cv2 threads 1)')
     fine = [make_course(args.course, s, 0.005) for s in range(n_seeds)]
