@@ -278,6 +278,18 @@ def test_a_fall_is_explained_from_the_true_poses_joints_and_terrain():
     assert compute_summary(d, model)['fall_analysis'] == []
 
 
+def _blocks_terrain():
+    """True terrain for the registration tests: 3 cm blocks in a 4 cm checkerboard, 1 mm
+    cells."""
+    from terrain_perception.grid import GridMap
+    truth = GridMap.empty(0.001, (0.3, -0.3), (600, 600))
+    xs, ys = truth.cell_centers()
+    X, Y = np.meshgrid(xs, ys, indexing='ij')
+    truth['elevation'] = (0.03 * ((np.floor(X / 0.04) + np.floor(Y / 0.04)) % 2)).astype(
+        np.float32)
+    return truth
+
+
 def test_the_map_and_footholds_are_read_where_the_estimate_error_puts_them():
     # The estimate is 12 mm behind the truth in x and 3 deg off in yaw. A map built through
     # that estimate shows each rock where the estimate puts it: registered by the estimate
@@ -297,11 +309,7 @@ def test_the_map_and_footholds_are_read_where_the_estimate_error_puts_them():
     q = np.linalg.inv(d.dr_T[2]) @ [0.7, 0.1, 0.01, 1.0]       # base frame, estimated
     np.testing.assert_allclose(p[1], (d.gt_T[2] @ q)[:3], atol=1e-12)
     # True terrain: 4 cm blocks on a 1 mm grid; the map (1 cm) shows it through C^-1.
-    truth = GridMap.empty(0.001, (0.3, -0.3), (600, 600))
-    xs, ys = truth.cell_centers()
-    X, Y = np.meshgrid(xs, ys, indexing='ij')
-    truth['elevation'] = (0.03 * ((np.floor(X / 0.04) + np.floor(Y / 0.04)) % 2)).astype(
-        np.float32)
+    truth = _blocks_terrain()
     grid = GridMap.empty(0.01, (0.4, -0.2), (40, 40))
     grid['elevation'] = sample_cell_mean(truth, grid, T_world_grid=C)
     mask = np.ones(grid.shape, bool)
@@ -325,11 +333,7 @@ def test_each_map_cell_is_registered_by_the_estimate_error_of_when_it_was_seen()
     p = np.radians(0.5)
     est[2][:3, :3] = [[np.cos(p), 0, np.sin(p)], [0, 1, 0], [-np.sin(p), 0, np.cos(p)]]
     d.dr_T = np.stack(est)
-    truth = GridMap.empty(0.001, (0.3, -0.3), (600, 600))
-    xs, ys = truth.cell_centers()
-    X, Y = np.meshgrid(xs, ys, indexing='ij')
-    truth['elevation'] = (0.03 * ((np.floor(X / 0.04) + np.floor(Y / 0.04)) % 2)).astype(
-        np.float32)
+    truth = _blocks_terrain()
     grid = GridMap.empty(0.01, (0.4, -0.2), (40, 40))
     gx, _ = grid.cell_centers()
     grid['last_seen'] = np.where(gx[:, None] < 0.6, 1.0, 2.0) + np.zeros(grid.shape, np.float32)

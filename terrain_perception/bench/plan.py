@@ -324,18 +324,26 @@ def walk_course(course: GridMap, truth_cost: np.ndarray, truth: GridMap, unsafe:
     return rec
 
 
+def _strategy_walks(courses, truths, robot, cfg, cost_cfg, selection: str, maps=None, **kw):
+    """``(config, records)``: :func:`walk_course` on every course with footholds chosen by
+    ``selection``; the baselines are terrain-blind (no cost and no foot-safety filter, only
+    reach, stability and known cells). ``maps(course)`` makes each walk's
+    :class:`PerceivedMaps` (None: ground-truth windows)."""
+    c = dataclasses.replace(cfg, selection=selection,
+                            max_unevenness=cfg.max_unevenness if selection == 'cost' else 0.0)
+    recs = []
+    for k, (course, truth) in enumerate(zip(courses, truths)):
+        tcost = features.cost_map(course[ELEVATION], course.resolution_m, cost_cfg)
+        unsafe = unsafe_mask(truth, robot.foot_radius_m)
+        recs.append(walk_course(course, tcost, truth, unsafe, robot, c, cost_cfg, seed=k,
+                                perceived=None if maps is None else maps(course), **kw))
+    return c, recs
+
+
 def bench_planner(courses, truths, robot, cfg, cost_cfg):
     out = {}
     for name, sel in (('planner', 'cost'), ('greedy', 'nominal'), ('random', 'random')):
-        # The baselines are terrain-blind: no cost and no foot-safety filter, only reach,
-        # stability and known cells.
-        c = dataclasses.replace(cfg, selection=sel,
-                                max_unevenness=cfg.max_unevenness if sel == 'cost' else 0.0)
-        recs = []
-        for k, (course, truth) in enumerate(zip(courses, truths)):
-            tcost = features.cost_map(course[ELEVATION], course.resolution_m, cost_cfg)
-            unsafe = unsafe_mask(truth, robot.foot_radius_m)
-            recs.append(walk_course(course, tcost, truth, unsafe, robot, c, cost_cfg, seed=k))
+        _, recs = _strategy_walks(courses, truths, robot, cfg, cost_cfg, sel)
         rough = np.concatenate([np.array(r['rough'], bool) for r in recs])
         cost = np.concatenate([np.array(r['cost']) for r in recs])
         unsafe = np.concatenate([np.array(r['unsafe'], bool) for r in recs])
@@ -370,15 +378,9 @@ def bench_perceived(courses, truths, robot, cfg, cost_cfg, body_yaw: str = 'plan
                                          / 'fill_library')]
     out = {}
     for name, sel in (('planner', 'cost'), ('greedy', 'nominal')):
-        c = dataclasses.replace(cfg, selection=sel,
-                                max_unevenness=cfg.max_unevenness if sel == 'cost' else 0.0)
-        recs = []
-        for k, (course, truth) in enumerate(zip(courses, truths)):
-            tcost = features.cost_map(course[ELEVATION], course.resolution_m, cost_cfg)
-            unsafe = unsafe_mask(truth, robot.foot_radius_m)
-            recs.append(walk_course(course, tcost, truth, unsafe, robot, c, cost_cfg, seed=k,
-                                    perceived=PerceivedMaps(course, robot, cost_cfg, library),
-                                    body_yaw=body_yaw))
+        _, recs = _strategy_walks(
+            courses, truths, robot, cfg, cost_cfg, sel, body_yaw=body_yaw,
+            maps=lambda course: PerceivedMaps(course, robot, cost_cfg, library))
         rough = np.concatenate([np.array(r['rough'], bool) for r in recs])
         cost = np.concatenate([np.array(r['cost']) for r in recs])[rough]
         unsafe = np.concatenate([np.array(r['unsafe'], bool) for r in recs])[rough]
