@@ -488,12 +488,11 @@ def test_content_after_short_walk(graph):
         idx = np.concatenate([np.column_stack([np.full(len(p['steps']), i),
                                                np.arange(len(p['steps']))])
                               for i, p in enumerate(ok_plans)] or [np.zeros((0, 2))])
-        obs = np.concatenate([p.get('observed', np.full(len(p['steps']), np.nan))
-                              for p in ok_plans] or [np.zeros(0)])
+        def per_step(key):              # a per-step record of the monitor, NaN if absent
+            return np.concatenate([p.get(key, np.full(len(p['steps']), np.nan))
+                                   for p in ok_plans] or [np.zeros(0)])[keep]
         np.savez(Path(artifacts) / 'plans.npz', index=idx[keep], stamps=stamps[keep],
-                 observed_at_plan=obs[keep], map_cost_at_plan=np.concatenate(
-                     [p.get('map_cost', np.full(len(p['steps']), np.nan)) for p in ok_plans]
-                     or [np.zeros(0)])[keep],
+                 observed_at_plan=per_step('observed'), map_cost_at_plan=per_step('map_cost'),
                  in_map=in_map, landing=steps, t_recv=np.array(
                      [p.get('t_recv', p['stamp']) for p in ok_plans]),
                  rough=np.array([g.course.rough_x0_m, g.course.rough_x1_m]))
@@ -535,9 +534,9 @@ def test_content_after_short_walk(graph):
     T_true = interp_poses(d.gt_t, d.gt_T, d.icp_t)
     err_all = np.linalg.norm(d.icp_T[:, :3, 3] - T_true[:, :3, 3], axis=1)
     if np.nanmax(err_all) > WALK_POSE_BOUND_M:
-        k = int(np.nanargmax(err_all))
-        failures.append(f'ICP pose error {err_all[k] * 1000:.1f} mm > '
-                        f'{WALK_POSE_BOUND_M * 1000:.0f} mm at {d.icp_t[k]:.1f} s sim '
+        i = int(np.nanargmax(err_all))
+        failures.append(f'ICP pose error {err_all[i] * 1000:.1f} mm > '
+                        f'{WALK_POSE_BOUND_M * 1000:.0f} mm at {d.icp_t[i]:.1f} s sim '
                         f'({err_all[-1] * 1000:.1f} mm at the end)')
     if fall_mask(d.gt_T[-50:], d.true_terrain, g.model.body_size_m).any():
         failures.append('fell')
