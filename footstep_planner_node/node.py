@@ -8,6 +8,7 @@ Subscriptions:
     /imu/data        sensor_msgs/Imu (sensor data): absolute orientation -> gravity
     /icp/pose        geometry_msgs/PoseStamped (reliable): robot pose ``T_map_base``
     /goal_pose       geometry_msgs/PoseStamped (reliable): goal; without one, straight ahead
+                     along the line of the first plan (``planner.straight_lookahead_m``)
     /walking/stance  terrain_msgs/Stance (reliable, transient local): the controller's feet
                      after the step in progress and its next leg; plans start from there
                      (without it: the nominal stance at the pose, first leg free); a step
@@ -212,7 +213,9 @@ class FootstepPlannerNode(Node):
         self._rebuild_planner()
 
     def _rebuild_planner(self) -> None:
+        line = self.planner.straight_line     # a parameter change keeps the goal-less line
         self.planner = fs.FootstepPlanner(self.robot, self.plan_cfg, self.cost_cfg)
+        self.planner.straight_line = line
         if self.grid is not None:
             self.map_problem = self.planner.set_map(self.grid)
 

@@ -724,3 +724,72 @@ def test_planner_on_perceived_and_filled_maps_crosses_on_low_cost_footholds():
         inside = np.isfinite(g['elevation'])
         assert (g['observed'][inside] < 0.5).any() and (g['filled'][inside] > 0.5).any()
     assert out['cost'] < 0.5 * out['nominal'], out
+
+
+
+def _walk_on_flat(robot, goal_xy, periods: int, lookahead_m: float = 1.0,
+                  turn_per_period_deg: float = 0.0):
+    """Plans on flat ground from the origin, each from the stance the last one's first gait
+    period left. After each period the stance is turned by ``turn_per_period_deg`` about its
+    centre (feet turned by footholds chosen around rocks) and the body stands at the feet's
+    yaw, as the walking controller puts it. Returns the body's ``(x, y, yaw [deg])`` after each
+    period (fewer rows if the goal was reached)."""
+    from terrain_perception.gait import body_pose_from_feet
+    g = _grid(np.zeros((400, 300)), origin=(-0.5, -1.5))
+    planner = fs.FootstepPlanner(robot, fs.PlannerConfig(straight_lookahead_m=lookahead_m))
+    assert planner.set_map(g) is None
+    T = _pose()
+    feet = np.array(robot.nominal_feet)
+    feet[:, 2] = 0.0
+    a = np.radians(turn_per_period_deg)
+    R = np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
+    out = []
+    for _ in range(periods):
+        plan = planner.plan(T, goal_xy, feet=feet)
+        if plan.status == fs.STATUS_GOAL_REACHED:
+            break
+        assert plan.ok, plan.status_text
+        period = 2 if plan.gait == fs.GAIT_TROT else 4
+        for s in plan.footsteps:
+            if s.step_index < period:
+                feet[s.leg] = s.position
+        c = feet[:, :2].mean(axis=0)
+        feet[:, :2] = c + (feet[:, :2] - c) @ R.T
+        x, y, _, yaw = body_pose_from_feet(feet, robot.standing_height_m)
+        T = _pose(x, y, yaw)
+        out.append((x, y, np.degrees(yaw)))
+    return np.array(out)
+
+
+CRAWLER = load_robot_model('littledog')     # crawls only, as in the closed loop
+
+
+@pytest.mark.parametrize('robot', [CRAWLER, ROBOT], ids=['crawl', 'trot'])
+def test_without_a_goal_the_planner_holds_its_line_against_a_turning_stance(robot):
+    # Every period the stance turns 3 deg left (the planner turns back at most max_turn_rad,
+    # 5.7 deg, per plan). Following the body's heading, the walk turns a full 36 deg and
+    # drifts sideways; holding the first plan's line, heading and offset stay near zero.
+    wander = _walk_on_flat(robot, None, 12, lookahead_m=0.0, turn_per_period_deg=3.0)
+    held = _walk_on_flat(robot, None, 12, turn_per_period_deg=3.0)
+    assert wander[-1, 2] > 30.0 and wander[-1, 1] > 0.05, wander[-1]
+    assert np.abs(held[:, 2]).max() < 6.0, held[:, 2]
+    assert np.abs(held[:, 1]).max() < 0.02, held[:, 1]
+    assert held[-1, 0] > 0.3, held[-1]
+    # A goal clears the line: the next goal-less plan starts a new one where the body is.
+    planner = _planner(fs.PlannerConfig(), _flat())
+    assert planner.plan(_pose(), None).ok and planner.straight_line is not None
+    assert planner.plan(_pose(), np.array([1.0, 0.5])).ok and planner.straight_line is None
+    plan = planner.plan(_pose(0.1, 0.2, 0.3), None)
+    assert plan.ok and plan.yaw == pytest.approx(0.3)
+    np.testing.assert_allclose(planner.straight_line[0], [0.1, 0.2])
+
+
+@pytest.mark.parametrize('robot', [CRAWLER, ROBOT], ids=['crawl', 'trot'])
+def test_a_goal_off_the_heading_is_reached_walking_or_trotting(robot):
+    # 28 deg to the left of the start heading. A trot step used to move each foot by A along
+    # the heading only, so a trotting robot never turned and walked past the goal.
+    goal = np.array([1.5, 0.8])
+    walk = _walk_on_flat(robot, goal, 40)
+    assert len(walk) < 40, walk[-1]
+    assert np.linalg.norm(walk[-1, :2] - goal) < 0.1, walk[-1]
+    assert walk[:, 2].max() > 25.0
