@@ -32,6 +32,7 @@ from typing import Deque, Dict, Optional, Tuple
 
 import numpy as np
 import open3d as o3d
+from scipy import ndimage
 from scipy.spatial.transform import Rotation, Slerp
 
 from terrain_perception.compiled import load_compiled
@@ -186,6 +187,11 @@ class MapperConfig:
         'kept and count once more arrive); 0 = publish every cell', 0, 1000000)
     isolated_min_neighbours: int = param(2, 'see isolated_max_count', 0, 8)
     isolated_gate_m: float = param(0.05, 'see isolated_max_count [m]', 0.0, 100.0)
+    isolated_island_cells: int = param(
+        20, 'also published as unobserved: islands of fewer observed cells than this (cells '
+        'at most one unobserved cell apart join), none with more than isolated_max_count '
+        'samples: a cluster of mismatches vouches for itself through the neighbour rule; '
+        '0 = off', 0, 1000000)
     line_of_sight_tolerance_m: float = param(
         0.1, 'a point is not fused when the ray from the camera to it passes more than this '
         '[m] below a cell the fine map has already observed, in the last half of its length: '
@@ -853,12 +859,16 @@ class FineHeightMap:
 
 
 def isolated_cells(grid: GridMap, max_count: int, min_neighbours: int,
-                   gate_m: float) -> np.ndarray:
+                   gate_m: float, island_cells: int = 0) -> np.ndarray:
     """bool ``(nx, ny)``: observed cells of at most ``max_count`` samples (layer ``count``)
     with fewer than ``min_neighbours`` observed cells among their 8 neighbours, or whose
     height differs by more than ``gate_m`` from the median of those neighbours: lone stereo
     mismatches, which a per-cell gate cannot see (one sample has nothing to disagree with).
-    A cell with more samples is never flagged."""
+    With ``island_cells``, also every cell of an island of fewer than ``island_cells``
+    observed cells (cells at most one unobserved cell apart are joined) none of which has more
+    than ``max_count`` samples: a cluster of mismatches from one capture vouches for itself
+    through the neighbour rule (four neighbouring single samples 0.67 m under the ground in a
+    graph test). A cell with more samples is never flagged."""
     h = np.asarray(grid[ELEVATION], np.float64)
     obs = (grid[OBSERVED] > 0.5) & np.isfinite(h) if OBSERVED in grid else np.isfinite(h)
     few = obs & (np.asarray(grid[COUNT]) <= max_count) if COUNT in grid else obs
@@ -876,6 +886,15 @@ def isolated_cells(grid: GridMap, max_count: int, min_neighbours: int,
         med[has] = np.nanmedian(nb[has], axis=1)
     with np.errstate(invalid='ignore'):
         out[ii, jj] = (n < min_neighbours) | (np.abs(h[ii, jj] - med) > gate_m)
+    if island_cells > 1:
+        labels, k = ndimage.label(ndimage.binary_dilation(obs, np.ones((3, 3), bool)),
+                                  np.ones((3, 3), bool))
+        labels = np.where(obs, labels, 0)
+        size = np.bincount(labels.ravel(), minlength=k + 1)
+        supported = np.bincount(labels[obs & ~few], minlength=k + 1)
+        weak = (size < island_cells) & (supported == 0)
+        weak[0] = False
+        out |= few & weak[labels]
     return out
 
 
@@ -949,7 +968,7 @@ class IcpMapper:
         c = self.config
         if c.isolated_max_count > 0:
             lone = isolated_cells(grid, c.isolated_max_count, c.isolated_min_neighbours,
-                                  c.isolated_gate_m)
+                                  c.isolated_gate_m, c.isolated_island_cells)
             if lone.any():
                 self.counters['isolated_cells_hidden'] += int(lone.sum())
                 for name in grid.layers:

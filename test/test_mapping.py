@@ -585,9 +585,11 @@ def test_fine_map_kernels_equal_the_numpy_code(gate, weighted):
 
 def test_lone_single_sample_cells_are_published_unobserved_and_kept():
     """The graph test's failure shape: flat ground observed densely (4 samples per cell), a
-    pair of single-sample cells 0.75 m below it off the observed area, one single-sample cell
+    pair of single-sample cells 0.75 m below it off the observed area, a 2 x 2 cluster of them
+    (each vouched for by three others, but none by a supported cell), one single-sample cell
     0.14 m above it inside, one single-sample cell at ground height on the area's edge, and a
-    real 10 cm step observed 5 times (on a ground cell: 9 samples). The published map hides exactly the three mismatches;
+    real 10 cm step observed 5 times (on a ground cell: 9 samples). The published map hides
+    exactly the seven mismatches;
     their samples stay in the statistics (a later sample makes them count)."""
     m = mp.IcpMapper(CONFIG, T_BC)
     res = m.fine.resolution_m
@@ -600,16 +602,19 @@ def test_lone_single_sample_cells_are_published_unobserved_and_kept():
     def cell(i, j, z, n=1):
         return np.repeat([[o[0] + (i + 0.5) * res, o[1] + (j + 0.5) * res, z]], n, axis=0)
     m.fine.add(np.r_[cell(30, 35, -0.75), cell(31, 35, -0.75),   # lone pair off the area
+                     cell(30, 28, -0.67), cell(31, 28, -0.67),   # a 2 x 2 cluster of them,
+                     cell(30, 29, -0.67), cell(31, 29, -0.67),   # 8 cells off the area
                      cell(10, 10, 0.14, 2),                       # inside, 2 samples
                      cell(20, 20, 0.001),                         # edge, ground height
                      cell(5, 19, 0.10, 5)], 1.0)                  # real step, 5 more samples
     g = m.fine_grid()
     obs = g[OBSERVED] > 0.5
     assert not obs[30, 35] and not obs[31, 35] and not obs[10, 10]
+    assert not obs[30:32, 28:30].any()
     assert np.isnan(g[ELEVATION][[30, 31, 10], [35, 35, 10]]).all()
     assert obs[20, 20] and obs[5, 19] and g[ELEVATION][5, 19] > 0.01
     assert int(obs.sum()) == 40 * 20 - 1 + 1              # the ground - (10, 10) + edge cell
-    assert m.counters['isolated_cells_hidden'] == 3
+    assert m.counters['isolated_cells_hidden'] == 7
     # samples kept: the 0.14 m cell's two samples are in the statistics, and one more sample
     # at the same height makes it a 3-sample cell that is published
     m.fine.add(cell(10, 10, 0.14), 2.0)
