@@ -45,6 +45,7 @@ import numpy as np
 
 from terrain_perception import features
 from terrain_perception.config import param
+from terrain_perception.gait import body_pose_from_feet
 from terrain_perception.grid import COST, ELEVATION, FILLED, OBSERVED, UPPER_BOUND, GridMap
 from terrain_perception.kinematics import solve_ik
 from terrain_perception.robot_model import LEG_NAMES, RobotModel
@@ -881,9 +882,7 @@ class FootstepPlanner:
         # A trot step moves a foot by A along the heading, which cannot turn the stance: the
         # first period also turns each pair about the stance centre to the plan's heading
         # (at most max_turn_rad), or a trotting robot never turns towards its goal.
-        front, hind = feet[[LF, RF], :2].mean(axis=0), feet[[LH, RH], :2].mean(axis=0)
-        turn = (yaw - math.atan2(front[1] - hind[1], front[0] - hind[0]) + np.pi) \
-            % (2 * np.pi) - np.pi
+        turn = (yaw - float(body_pose_from_feet(feet, 0.0)[3]) + np.pi) % (2 * np.pi) - np.pi
         turn = float(np.clip(turn, -cfg.max_turn_rad, cfg.max_turn_rad))
         centre = feet[:, :2].mean(axis=0)
         Rturn = np.array([[math.cos(turn), -math.sin(turn)], [math.sin(turn), math.cos(turn)]])
