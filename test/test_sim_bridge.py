@@ -210,13 +210,16 @@ def test_capture_only_on_request(ros_context, executor):
     h.run_until_sim(0.5)
     assert spin_until(h.ex, lambda: h.got['/joint_states'], 5.0)
     assert not h.got['/stereo/left/image_rect'] and h.node.captures == 0
+    # The request is for a stamp 0.3 s ahead of the simulator's clock now (spinning for the
+    # joint states above lets the simulation run on: a fixed 0.8 s could already be past).
+    t_req = round(h.node.session.t_s + 0.3, 3)
     stamp = Header()
-    stamp.stamp.sec, stamp.stamp.nanosec = 0, 800_000_000
+    stamp.stamp.sec, stamp.stamp.nanosec = int(t_req), int(round((t_req % 1.0) * 1e9))
     h.pub_capture.publish(stamp)
     assert spin_until(h.ex, lambda: h.got['/stereo/left/image_rect'] and depth_msgs, 30.0)
     t_img = stamp_to_sec(h.got['/stereo/left/image_rect'][0].header.stamp)
-    assert 0.8 - 1e-9 <= t_img <= 0.8 + 2 * h.node.session.dt_s
-    h.run_until_sim(1.5)
+    assert t_req - 1e-9 <= t_img <= t_req + 2 * h.node.session.dt_s
+    h.run_until_sim(t_req + 0.7)
     spin_until(h.ex, lambda: False, 0.3)
     assert h.node.captures == 1 and len(h.got['/stereo/left/image_rect']) == 1
     # the ground-truth depth belongs to the same capture and sees the floor ahead
