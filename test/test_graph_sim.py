@@ -324,7 +324,26 @@ class Graph:
         bad = {n: s.get('reason', s['state']) for n, s in states.items() if s['state'] != 'ran'}
         return (f'sim t {self.sim_t():.1f} s, x {self.x()}, plans {len(self.monitor.plans)}, '
                 f'maps {self.monitor.counts.get("/map/fine", 0)}; missing nodes '
-                f'{self.missing_nodes()}; nodes not running cleanly {bad}')
+                f'{self.missing_nodes()}; nodes not running cleanly {bad}; '
+                f'{self.loop_state()}')
+
+    def loop_state(self) -> str:
+        """The last plan's status and steps, and the controller's last stance message (steps
+        done, pending, its last refusal): what tells a stall from a dead loop."""
+        parts = []
+        if self.monitor.plans:
+            p = self.monitor.plans[-1]
+            parts.append(f'last plan stamp {p["stamp"]:.2f} s: {len(p["steps"])} steps, status '
+                         f'{p["status"]} {p["status_text"]!r}')
+        try:
+            st = self.probe.last('/walking/stance')
+        except Exception as exc:   # a diagnostic must not hide the failure it describes
+            st, parts = None, parts + [f'stance unreadable: {exc}']
+        if st is not None:
+            parts.append(f'stance at {st.header.stamp.sec + 1e-9 * st.header.stamp.nanosec:.2f}'
+                         f' s: steps done {st.steps_done}, pending {st.pending_steps}, '
+                         f'last error {st.last_error!r}')
+        return '; '.join(parts) or 'no plan or stance yet'
 
     def close(self) -> None:
         if self.closed:
