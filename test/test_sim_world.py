@@ -211,6 +211,37 @@ def test_imu_noise_is_seeded_and_bad_input_refused():
     np.testing.assert_allclose(s.linear_acceleration, [1.0, 0.0, 9.81], atol=1e-9)
 
 
+def test_imu_yaw_drifts_by_the_gyro_bias_while_roll_pitch_and_short_intervals_hold():
+    """An attitude filter without a magnetometer: the reported yaw wanders by the integrated
+    gyro bias (here its vertical part, the IMU level), roll and pitch stay true, and two
+    readings half a second apart agree on the rotation between them to the noise."""
+    T = make_T(rpy_to_R(0.0, 0.0, 0.4), [0.0, 0.0, 0.3])
+    imu = ImuModel(ImuConfig(), seed=3)
+    yaw_true = 0.4
+    samples = []
+    for k in range(6001):                          # 60 s at 100 Hz, yawing at 0.01 rad/s
+        t = 0.01 * k
+        T_k = make_T(rpy_to_R(0.0, 0.0, yaw_true + 0.01 * t), [0.0, 0.0, 0.3])
+        samples.append((T_k, imu.update(t, T_k, np.zeros(3), np.array([0.0, 0.0, 0.01]))))
+    T_end, s_end = samples[-1]
+    R_rep = quat_to_R(s_end.orientation_xyzw)
+    yaw_err = np.arctan2(R_rep[1, 0], R_rep[0, 0]) - np.arctan2(T_end[1, 0], T_end[0, 0])
+    # the bias's vertical part over 60 s (the IMU frame is level here)
+    assert yaw_err == pytest.approx(imu.gyro_bias[2] * 60.0, abs=0.005)
+    assert abs(yaw_err) > 0.01                   # seed 3's bias: a drift that shows
+    assert np.degrees(np.arccos(np.clip(R_rep[2, 2], -1, 1))) < 0.5     # still level
+    (Ta, sa), (Tb, sb) = samples[3000], samples[3050]
+    rel_rep = quat_to_R(sa.orientation_xyzw).T @ quat_to_R(sb.orientation_xyzw)
+    rel_true = Ta[:3, :3].T @ Tb[:3, :3]
+    ang = np.degrees(np.arccos(np.clip((np.trace(rel_rep.T @ rel_true) - 1) / 2, -1, 1)))
+    assert ang < 0.5
+    still = ImuModel(ImuConfig(yaw_drift=False), seed=3)
+    for k in range(6001):
+        s = still.update(0.01 * k, T, np.zeros(3), np.zeros(3))
+    R_s = quat_to_R(s.orientation_xyzw)
+    assert abs(np.arctan2(R_s[1, 0], R_s[0, 0]) - 0.4) < 0.01
+
+
 def test_world_refuses_a_grid_without_elevation(client):
     with pytest.raises(ValueError, match='elevation'):
         SimWorld(client, GridMap(0.1, (0, 0), (4, 4), {'cost': np.zeros((4, 4))}))

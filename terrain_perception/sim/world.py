@@ -436,6 +436,10 @@ class ImuConfig:
                                        'drawn at start [m/s^2]', 0.0, 100.0)
     orientation_noise_std_rad: float = param(0.001, 'white noise of the reported orientation, '
                                              'per axis [rad]', 0.0, 1.0)
+    yaw_drift: bool = param(True, 'the reported yaw integrates the gyro bias\'s vertical part, '
+                            'as an attitude filter without a magnetometer does (gravity holds '
+                            'roll and pitch, nothing holds yaw): about 3 deg/min at the default '
+                            'bias')
 
 
 @dataclass(frozen=True)
@@ -463,7 +467,9 @@ class ImuModel:
 
     Acceleration is the finite difference of the IMU point's world velocity between
     successive :meth:`update` calls (the first call assumes no acceleration); the biases are
-    drawn once from the seed.
+    drawn once from the seed. The reported orientation is the true one with white noise and,
+    with ``yaw_drift``, a yaw error that grows by the gyro bias's vertical part (world frame)
+    integrated over time: consecutive readings agree to the noise, the absolute yaw wanders.
     """
 
     def __init__(self, cfg: ImuConfig = ImuConfig(), seed: int = 0,
@@ -474,6 +480,8 @@ class ImuModel:
         self.gyro_bias = self._rng.normal(0.0, cfg.gyro_bias_std_rad_s, 3)
         self.accel_bias = self._rng.normal(0.0, cfg.accel_bias_std_mps2, 3)
         self._prev: Optional[Tuple[float, np.ndarray]] = None
+        self._last_stamp: Optional[float] = None
+        self.yaw_error_rad = 0.0     # the reported yaw minus the true one (without the noise)
 
     def reset(self) -> None:
         """Forget the velocity history (e.g. after teleporting the robot)."""
@@ -508,11 +516,16 @@ class ImuModel:
             acc = (v_imu - v_prev) / dt
         self._prev = (float(stamp_s), v_imu)
         cfg, rng = self.cfg, self._rng
+        if cfg.yaw_drift and self._last_stamp is not None:
+            self.yaw_error_rad += float((R @ self.gyro_bias)[2]) * (float(stamp_s)
+                                                                     - self._last_stamp)
+        self._last_stamp = float(stamp_s)
         specific_force = R.T @ (acc + np.array([0.0, 0.0, GRAVITY_MPS2]))
         accel = specific_force + self.accel_bias + rng.normal(0, cfg.accel_noise_std_mps2, 3)
         gyro = R.T @ w_world + self.gyro_bias + rng.normal(0, cfg.gyro_noise_std_rad_s, 3)
         dtheta = rng.normal(0, cfg.orientation_noise_std_rad, 3)
-        quat = R_to_quat(R @ _small_rotation(dtheta))
+        quat = R_to_quat(_small_rotation(np.array([0.0, 0.0, self.yaw_error_rad]))
+                         @ R @ _small_rotation(dtheta))
         cov = (np.full(3, cfg.orientation_noise_std_rad ** 2),
                np.full(3, cfg.gyro_noise_std_rad_s ** 2 + cfg.gyro_bias_std_rad_s ** 2),
                np.full(3, cfg.accel_noise_std_mps2 ** 2 + cfg.accel_bias_std_mps2 ** 2))
