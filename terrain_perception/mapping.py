@@ -160,6 +160,10 @@ class MapperConfig:
         True, "turn the prior by the IMU's attitude change since the last accepted capture "
         '(a slip the leg odometry misses turns the body but not its estimate); the position '
         'stays dead reckoning\'s')
+    icp_yaw_gain: float = param(
+        1.0, "with the IMU rotation prior: share of ICP's yaw correction kept (1 = ICP's yaw; "
+        "0 = the IMU's yaw change alone); the translation follows ICP's cost valley to the "
+        'kept yaw (a constant-gain filter of the two yaw sources, see blend_yaw)', 0.0, 1.0)
     use_gravity_prior: bool = param(False, 'level the prior with a measured up vector (IMU)')
     use_ground_plane_prior: bool = param(False, 'level the prior with a RANSAC ground plane')
     ground_plane_threshold_m: float = param(0.01, 'RANSAC inlier distance [m]', 1e-4, 1.0)
@@ -434,6 +438,74 @@ def depth_weights(z_m: np.ndarray, focal_baseline_px_m: Optional[float],
     return 1.0 / (sz * sz + floor_m * floor_m)
 
 
+def _information(T_prior: np.ndarray, points: np.ndarray, normals: np.ndarray,
+                 weights: Optional[np.ndarray]) -> Tuple[np.ndarray, float]:
+    """The normalised point-to-plane information ``H`` (6x6) about the prior's origin and the
+    lever arm ``L`` that makes its rotation part unitless (see remove_degenerate_motion)."""
+    c = T_prior[:3, 3]
+    d = points - c
+    w = np.ones(len(d)) if weights is None else np.asarray(weights, dtype=np.float64)
+    w = w / w.sum()
+    L = float(np.sqrt(w @ np.sum(d * d, axis=1))) or 1.0
+    J = np.hstack([np.cross(d, normals) / L, normals])
+    return (J * w[:, None]).T @ J, L
+
+
+def _motion(T: np.ndarray, T_prior: np.ndarray, L: float) -> np.ndarray:
+    """``T`` relative to ``T_prior`` as ``[rotation vector * L, translation]`` (map frame,
+    rotation about the prior's origin)."""
+    R_delta = T[:3, :3] @ T_prior[:3, :3].T
+    return np.concatenate([Rotation.from_matrix(R_delta).as_rotvec() * L,
+                           T[:3, 3] - T_prior[:3, 3]])
+
+
+def _from_motion(x: np.ndarray, T_prior: np.ndarray, L: float) -> np.ndarray:
+    out = np.eye(4)
+    out[:3, :3] = Rotation.from_rotvec(x[:3] / L).as_matrix() @ T_prior[:3, :3]
+    out[:3, 3] = T_prior[:3, 3] + x[3:]
+    return out
+
+
+def blend_yaw(T_icp: np.ndarray, T_prior: np.ndarray, points: np.ndarray, normals: np.ndarray,
+              gain: float, weights: Optional[np.ndarray] = None) -> np.ndarray:
+    """Keep ``gain`` of ICP's yaw correction and move the rest of the pose along ICP's cost
+    valley to match.
+
+    With the prior's rotation from the IMU, two sources measure the yaw change since the last
+    accepted capture: the IMU, to its noise and the drift of its yaw over one interval, and
+    ICP, whose yaw is the least constrained direction on a narrow view of rough ground and
+    whose errors are fused into the model it aligns the next capture to, so that they add up
+    (a walk turning on the rocks ended 2.5 deg and 23 mm off). A constant gain is the steady
+    state of the Kalman filter of the two; the IMU's yaw drift ``b`` leaves about
+    ``b dt (1 - gain) / gain`` of lag.
+
+    The point-to-plane cost near ICP's optimum is ``(x - x_icp)^T H (x - x_icp)`` in the
+    coordinates of :func:`remove_degenerate_motion` (map-frame rotation about the prior's
+    origin times ``L``, translation); with the yaw fixed at ``gain`` of ICP's, the other five
+    take their conditional minimum ``x_o = x_icp,o - H_oo^+ H_oy dy``, so that a yaw change
+    does not swing the aligned cloud off the model about the camera.
+
+    Args:
+        T_icp, T_prior: 4x4 poses of the same frame (map <- sensor); ``T_prior``'s rotation
+            is the IMU's.
+        points: ``(N, 3)`` aligned source points in the map frame [m]; normals: their model
+            normals ``(N, 3)``; weights: ``(N,)`` or None (as remove_degenerate_motion).
+        gain: share of ICP's yaw kept, in [0, 1].
+    """
+    if not 0.0 <= gain <= 1.0:
+        raise ValueError(f'yaw gain must be in [0, 1], got {gain}')
+    if gain == 1.0 or len(points) == 0:
+        return T_icp
+    H, L = _information(T_prior, points, normals, weights)
+    x = _motion(T_icp, T_prior, L)
+    dy = (gain - 1.0) * x[2]                  # the map z (yaw) part of the rotation
+    other = [0, 1, 3, 4, 5]
+    x = x.copy()
+    x[2] += dy
+    x[other] -= np.linalg.pinv(H[np.ix_(other, other)], rcond=1e-6) @ (H[other, 2] * dy)
+    return _from_motion(x, T_prior, L)
+
+
 def remove_degenerate_motion(T_icp: np.ndarray, T_prior: np.ndarray, points: np.ndarray,
                              normals: np.ndarray, threshold: float,
                              weights: Optional[np.ndarray] = None
@@ -461,26 +533,14 @@ def remove_degenerate_motion(T_icp: np.ndarray, T_prior: np.ndarray, points: np.
     Returns:
         ``(T, eigenvalues (6,) ascending, number of directions left at the prior)``.
     """
-    c = T_prior[:3, 3]
-    d = points - c
-    w = np.ones(len(d)) if weights is None else np.asarray(weights, dtype=np.float64)
-    w = w / w.sum()
-    L = float(np.sqrt(w @ np.sum(d * d, axis=1))) or 1.0
-    J = np.hstack([np.cross(d, normals) / L, normals])
-    H = (J * w[:, None]).T @ J
+    H, L = _information(T_prior, points, normals, weights)
     w, V = np.linalg.eigh(H)
     good = w >= threshold
     if good.all():
         return T_icp, w, 0
-    R_delta = T_icp[:3, :3] @ T_prior[:3, :3].T
-    x = np.concatenate([Rotation.from_matrix(R_delta).as_rotvec() * L,
-                        T_icp[:3, 3] - c])
     Vg = V[:, good]
-    x = Vg @ (Vg.T @ x)
-    out = np.eye(4)
-    out[:3, :3] = Rotation.from_rotvec(x[:3] / L).as_matrix() @ T_prior[:3, :3]
-    out[:3, 3] = c + x[3:]
-    return out, w, int((~good).sum())
+    x = _motion(T_icp, T_prior, L)
+    return _from_motion(Vg @ (Vg.T @ x), T_prior, L), w, int((~good).sum())
 
 
 def height_map_normals(h: np.ndarray, origin_xy: np.ndarray, resolution_m: float,
@@ -1085,8 +1145,9 @@ class IcpMapper:
                 np.linalg.norm(T_odom_base[:3, 3] - self._last_odom[:3, 3]))
         self._last_odom = T_odom_base.copy()
         T_prior = self.T_map_odom @ T_odom_base
-        if c.use_imu_rotation_prior and attitude is not None \
-                and self._accepted_attitude is not None:
+        imu_prior = (c.use_imu_rotation_prior and attitude is not None
+                     and self._accepted_attitude is not None)
+        if imu_prior:
             # the body's rotation since the last accepted capture, as the IMU measured it
             R_then, T_map_then = self._accepted_attitude
             T_prior[:3, :3] = T_map_then[:3, :3] @ (R_then.T @ attitude)
@@ -1123,16 +1184,23 @@ class IcpMapper:
         corr = np.asarray(reg.correspondence_set)
         n_degenerate = 0
         min_info = info_limit = float('nan')
-        if len(corr) >= 6 and (c.degeneracy_threshold > 0 or c.degeneracy_noise_gain > 0):
+        blend = imu_prior and c.icp_yaw_gain < 1.0
+        degeneracy = c.degeneracy_threshold > 0 or c.degeneracy_noise_gain > 0
+        if len(corr) >= 6 and (blend or degeneracy):
             src_pts = np.asarray(src.points)[corr[:, 0]]
+            normals = np.asarray(self._model.normals)[corr[:, 1]]
+            weights = depth_weights(src_pts[:, 2], self.focal_baseline_px_m,
+                                    c.disparity_sigma_px, c.depth_sigma_floor_m)
+            if blend:
+                T_cam = blend_yaw(T_cam, T_cam_prior, transform_points(T_cam, src_pts),
+                                  normals, c.icp_yaw_gain, weights)
+        if len(corr) >= 6 and degeneracy:
             # information below what noise alone puts into the normals is not geometry
             noise_slope = self._plane_rmse(src, T_cam, corr) / c.normal_radius_m
             info_limit = max(c.degeneracy_threshold, c.degeneracy_noise_gain * noise_slope ** 2)
             T_cam, eig, n_degenerate = remove_degenerate_motion(
-                T_cam, T_cam_prior, transform_points(T_cam, src_pts),
-                np.asarray(self._model.normals)[corr[:, 1]], info_limit,
-                depth_weights(src_pts[:, 2], self.focal_baseline_px_m, c.disparity_sigma_px,
-                              c.depth_sigma_floor_m))
+                T_cam, T_cam_prior, transform_points(T_cam, src_pts), normals, info_limit,
+                weights)
             min_info = float(eig[0])
         rmse = self._plane_rmse(src, T_cam, corr)
         T_base = T_cam @ invert(self.T_base_camera)

@@ -622,3 +622,49 @@ def test_lone_single_sample_cells_are_published_unobserved_and_kept():
     off = mp.IcpMapper(dataclasses.replace(CONFIG, isolated_max_count=0), T_BC)
     off.fine = m.fine
     assert off.fine_grid()[OBSERVED][30, 35] > 0.5
+
+
+def _bumpy_view(n=2000, seed=0):
+    """Points of a bumpy patch 0.3-0.9 m ahead of a camera at the origin-ish, with normals."""
+    rng = np.random.default_rng(seed)
+    x = rng.uniform(0.3, 0.9, n)
+    y = rng.uniform(-0.25, 0.25, n)
+    a, k = 0.03, 12.0
+    z = a * np.sin(k * x) * np.cos(k * y) - 0.3
+    dzdx = a * k * np.cos(k * x) * np.cos(k * y)
+    dzdy = -a * k * np.sin(k * x) * np.sin(k * y)
+    nrm = np.column_stack([-dzdx, -dzdy, np.ones(n)])
+    return np.column_stack([x, y, z]), nrm / np.linalg.norm(nrm, axis=1, keepdims=True)
+
+
+def test_blend_yaw_moves_along_the_icp_valley_to_the_imu_yaw():
+    """ICP's optimum with a wrong yaw sits in the cost valley (its translation compensates
+    part of the yaw about the cloud); keeping none of its yaw must come back to the true pose,
+    not merely turn the camera about its own origin."""
+    pts, nrm = _bumpy_view()
+    T_true = make_T(rpy_to_R(0.0, 0.6, 0.1), [0.05, -0.02, 0.02])
+    T_prior = T_true.copy()                        # the IMU's rotation, dead reckoning 8 mm off
+    T_prior[:3, 3] += [0.006, -0.005, 0.0]
+    # ICP's answer: 1.5 deg of yaw error, the rest at the conditional minimum of the cost
+    H, L = mp._information(T_true, pts, nrm, None)
+    y = np.radians(1.5) * L
+    x = np.zeros(6)
+    x[2] = y
+    other = [0, 1, 3, 4, 5]
+    x[other] = -np.linalg.solve(H[np.ix_(other, other)], H[other, 2] * y)
+    T_icp = mp._from_motion(x, T_true, L)
+    assert np.linalg.norm(T_icp[:3, 3] - T_true[:3, 3]) > 0.005      # a real position error
+    out = mp.blend_yaw(T_icp, T_prior, pts, nrm, 0.0)
+    assert angle_between(out[:3, :3], T_true[:3, :3]) < np.radians(0.05)
+    assert np.linalg.norm(out[:3, 3] - T_true[:3, 3]) < 0.5e-3
+    # only turning the camera back about its origin leaves the translation error in place
+    naive = T_icp.copy()
+    naive[:3, :3] = T_prior[:3, :3]
+    assert np.linalg.norm(naive[:3, 3] - T_true[:3, 3]) > 0.005
+    # half the gain: half the yaw error, and gain 1 is ICP's pose untouched
+    half = mp.blend_yaw(T_icp, T_prior, pts, nrm, 0.5)
+    assert np.degrees(angle_between(half[:3, :3], T_true[:3, :3])) == pytest.approx(0.75,
+                                                                                   abs=0.05)
+    np.testing.assert_array_equal(mp.blend_yaw(T_icp, T_prior, pts, nrm, 1.0), T_icp)
+    with pytest.raises(ValueError, match='gain'):
+        mp.blend_yaw(T_icp, T_prior, pts, nrm, 1.5)
