@@ -388,7 +388,9 @@ class Monitor:
         self.ctx = Context()
         if domain_id is None:
             domain_id = int(os.environ.get('ROS_DOMAIN_ID', '0') or 0)
-        rclpy.init(context=self.ctx, domain_id=domain_id,
+        # args=[]: rclpy would otherwise read the tool's own command line, where rcl takes
+        # every `--arg NAME:=VALUE` for a (deprecated-syntax) remap rule of the monitor
+        rclpy.init(args=[], context=self.ctx, domain_id=domain_id,
                    signal_handler_options=SignalHandlerOptions.NO)
         self.node = rclpy.create_node('terrain_demo_monitor', context=self.ctx,
                                       start_parameter_services=False)
