@@ -111,6 +111,9 @@ class WalkingConfig:
                                          'no inertia) has found the ground when its estimated '
                                          'vertical force exceeds this [N]; hanging it reads '
                                          'about -1 N (its own weight)', -100.0, 1000.0)
+    swing_inward_lift: bool = param(
+        True, 'a swing that moves the foot towards the body\'s centre line makes that sideways '
+        'part while lifting (diagonally up and in) instead of at the apex')
     swing_approach_m: float = param(
         0.0, 'The last this much of a swing\'s lowering is a slow straight descent at '
         'swing_approach_speed_m_s (capped by the apex): ground up to this much higher than '
@@ -1170,9 +1173,22 @@ class WalkingController:
         return feet
 
     def _swing_trajectory(self, p0, p1, apex: float, dur: float) -> gaitlib.SwingTrajectory:
+        """The swing from ``p0`` to ``p1``; with ``swing_inward_lift``, a foot that moves
+        towards the body's centre line makes that sideways part while it lifts: a foot standing
+        far out cannot be lifted straight up (the hip's abduction limit; rocks-6cm seed 1 stalled
+        60 s with RH 5 cm outside its nominal place and every RH step refused at lift-off)."""
         c = self.config
+        lift_xy = None
+        if c.swing_inward_lift and self._body is not None:
+            yaw = float(self._body[3])
+            side = np.array([-np.sin(yaw), np.cos(yaw)])
+            out0 = float((np.asarray(p0)[:2] - self._body[:2]) @ side)
+            lat = float((np.asarray(p1)[:2] - np.asarray(p0)[:2]) @ side)
+            if lat * out0 < 0.0:               # the move's sideways part points inwards
+                lift_xy = lat * side
         return gaitlib.SwingTrajectory(p0, p1, apex, dur, approach_m=c.swing_approach_m,
-                                       approach_speed_m_s=c.swing_approach_speed_m_s)
+                                       approach_speed_m_s=c.swing_approach_speed_m_s,
+                                       lift_xy=lift_xy)
 
     def _make_swing(self, step: _Step, t0: float) -> Optional[_Segment]:
         m = self.model

@@ -176,7 +176,9 @@ class SwingTrajectory:
         p0, p1: start and end foot positions (world) [m]; apex_z: traverse height [m];
         duration_s: time of lift, traverse and lowering; lift_fraction: share of that time for
         each vertical part; approach_m: height of the final approach above ``p1`` [m] (capped
-        by the apex); approach_speed_m_s: its descent speed.
+        by the apex); approach_speed_m_s: its descent speed; lift_xy: the part of the
+        horizontal move [m] made during the lift, on the lift's own curve (the foot rises
+        diagonally), the rest crossing at the apex as usual; None = all of it at the apex.
     """
 
     p0: np.ndarray
@@ -186,6 +188,7 @@ class SwingTrajectory:
     lift_fraction: float = 0.25
     approach_m: float = 0.0
     approach_speed_m_s: float = 0.1
+    lift_xy: Optional[np.ndarray] = None
 
     @property
     def approach_height_m(self) -> float:
@@ -215,7 +218,12 @@ class SwingTrajectory:
         # the traverse overlaps the vertical parts slightly so the foot leaves the ground
         # before moving forward and lands after stopping
         across, _ = min_jerk((s - 0.6 * f) / (1.0 - 1.2 * f))
-        xy = p0[:2] + across[..., None] * (p1[:2] - p0[:2])
+        if self.lift_xy is None:
+            xy = p0[:2] + across[..., None] * (p1[:2] - p0[:2])
+        else:
+            lead = np.asarray(self.lift_xy, dtype=np.float64)
+            xy = (p0[:2] + up[..., None] * lead
+                  + across[..., None] * (p1[:2] - p0[:2] - lead))
         z = np.where(s < 0.5, p0[2] + up * (self.apex_z - p0[2]),
                      self.apex_z + down * (p1[2] + a - self.apex_z))
         if a > 0.0:
