@@ -699,3 +699,29 @@ def test_a_swing_cut_in_the_air_is_checked_and_the_foot_probed_down():
     blind, cut_above, probed, kinds = step(0.0)
     assert blind.touchdowns['early'] == 1 and not probed and 'verify' not in kinds
     assert blind.feet[0, 2] > 0.01                                  # believed in mid-air
+
+
+def test_inward_swing_lifts_sideways_only_towards_the_centre_line():
+    """swing_inward_lift: a foot standing out to the side and stepping inwards makes its
+    sideways part while lifting (in the body's frame, here turned 30 deg); stepping outwards,
+    or with the option off, it lifts straight up."""
+    m = load_robot_model('littledog')
+    yaw = np.radians(30.0)
+    T = make_T(rot_z(yaw), [1.0, 0.5, m.standing_height_m])
+    ctl = WalkingController(m, WalkingConfig())
+    ctl.reset(0.0)
+    ctl._body = np.array([1.0, 0.5, m.standing_height_m, yaw, 0.0, 0.0])
+    out_rh = transform_points(T, np.array([[-0.16, -0.11, -m.standing_height_m]]))[0]
+    in_rh = transform_points(T, np.array([[-0.10, -0.07, -m.standing_height_m + 0.05]]))[0]
+    far_rh = transform_points(T, np.array([[-0.10, -0.15, -m.standing_height_m]]))[0]
+    sw = ctl._swing_trajectory(out_rh, in_rh, in_rh[2] + 0.03, 0.4)
+    side = np.array([-np.sin(yaw), np.cos(yaw)])
+    np.testing.assert_allclose(sw.lift_xy, 0.04 * side, atol=1e-9)    # 4 cm in, body's y
+    top = sw.position(0.1)                                               # end of the lift
+    lateral = float((top[:2] - out_rh[:2]) @ side)
+    assert lateral == pytest.approx(0.04, abs=0.002)
+    assert ctl._swing_trajectory(in_rh, far_rh, in_rh[2] + 0.03, 0.4).lift_xy is None
+    off = WalkingController(m, WalkingConfig(swing_inward_lift=False))
+    off.reset(0.0)
+    off._body = ctl._body.copy()
+    assert off._swing_trajectory(out_rh, in_rh, in_rh[2] + 0.03, 0.4).lift_xy is None

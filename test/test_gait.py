@@ -145,3 +145,24 @@ def test_body_tilt_follows_the_feet_plane_and_poses_agree():
         np.testing.assert_allclose(T[k], G.pose_to_T(bodies[k]), atol=1e-12)
     # the tilted body's x axis climbs towards the front feet
     assert T[0, 2, 0] > 0
+
+
+def test_swing_lift_xy_moves_sideways_while_lifting_and_ends_on_target():
+    p0, p1 = np.array([0.0, -0.11, 0.0]), np.array([0.06, -0.07, 0.05])
+    lead = np.array([0.0, 0.04])
+    sw = G.SwingTrajectory(p0, p1, 0.09, 0.4, lift_xy=lead)
+    plain = G.SwingTrajectory(p0, p1, 0.09, 0.4)
+    for s in (sw, plain):
+        np.testing.assert_allclose(s.position(0.0), p0, atol=1e-12)
+        np.testing.assert_allclose(s.position(0.4), p1, atol=1e-12)
+    top = 0.25 * 0.4                               # the end of the lift (lift_fraction 0.25)
+    a, b = sw.position(top), plain.position(top)
+    assert a[2] == pytest.approx(0.09) and b[2] == pytest.approx(0.09)
+    # the sideways part is done by the top of the lift, the forward part barely started
+    assert a[1] == pytest.approx(-0.07, abs=0.002) and a[0] < 0.002
+    assert b[1] == pytest.approx(-0.11, abs=0.002)
+    # and the foot rises with it: half-way up it is about half-way in
+    t = np.linspace(0.0, top, 201)
+    path = sw.position(t)
+    k = int(np.argmin(np.abs(path[:, 2] - 0.045)))
+    assert path[k, 1] == pytest.approx(-0.09, abs=0.004)
