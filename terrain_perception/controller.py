@@ -114,6 +114,10 @@ class WalkingConfig:
     swing_inward_lift: bool = param(
         True, 'a swing that moves the foot towards the body\'s centre line makes that sideways '
         'part while lifting (diagonally up and in) instead of at the apex')
+    swing_lift_fore_aft_m: float = param(
+        0.05, 'a foot standing more than this behind or ahead of its nominal place (along the '
+        'body) makes the part of its step beyond this while lifting, when the step moves it '
+        'back towards that place; 0 = off [m]', 0.0, 1.0)
     swing_approach_m: float = param(
         0.0, 'The last this much of a swing\'s lowering is a slow straight descent at '
         'swing_approach_speed_m_s (capped by the apex): ground up to this much higher than '
@@ -1017,7 +1021,7 @@ class WalkingController:
         poses = np.repeat(self._feet[None], len(taus), axis=0)
         for k, leg in enumerate(legs):
             sw = self._swing_trajectory(self._feet[leg], targets[k],
-                                        self._apex(self._feet[leg], targets[k]), 1.0)
+                                        self._apex(self._feet[leg], targets[k]), 1.0, leg)
             poses[:, leg] = sw.position(taus * sw.total_s)
         names = "+".join(LEG_NAMES[k] for k in legs)
         nominal_off = transform_points(gaitlib.pose_to_T(goal), kinematics.com_base(
@@ -1172,20 +1176,37 @@ class WalkingController:
         feet[:, 2] += g * dz
         return feet
 
-    def _swing_trajectory(self, p0, p1, apex: float, dur: float) -> gaitlib.SwingTrajectory:
+    def _swing_trajectory(self, p0, p1, apex: float, dur: float,
+                          leg: Optional[int] = None) -> gaitlib.SwingTrajectory:
         """The swing from ``p0`` to ``p1``; with ``swing_inward_lift``, a foot that moves
         towards the body's centre line makes that sideways part while it lifts: a foot standing
         far out cannot be lifted straight up (the hip's abduction limit; rocks-6cm seed 1 stalled
-        60 s with RH 5 cm outside its nominal place and every RH step refused at lift-off)."""
+        60 s with RH 5 cm outside its nominal place and every RH step refused at lift-off). With
+        ``swing_lift_fore_aft_m``, a foot standing more than that behind or ahead of its nominal
+        place (along the body) also makes the part of its step beyond it while lifting."""
         c = self.config
         lift_xy = None
-        if c.swing_inward_lift and self._body is not None:
+        if self._body is not None:
             yaw = float(self._body[3])
             side = np.array([-np.sin(yaw), np.cos(yaw)])
-            out0 = float((np.asarray(p0)[:2] - self._body[:2]) @ side)
-            lat = float((np.asarray(p1)[:2] - np.asarray(p0)[:2]) @ side)
-            if lat * out0 < 0.0:               # the move's sideways part points inwards
-                lift_xy = lat * side
+            ahead = np.array([np.cos(yaw), np.sin(yaw)])
+            step = np.asarray(p1)[:2] - np.asarray(p0)[:2]
+            lead = np.zeros(2)
+            if c.swing_inward_lift:
+                out0 = float((np.asarray(p0)[:2] - self._body[:2]) @ side)
+                lat = float(step @ side)
+                if lat * out0 < 0.0:           # the move's sideways part points inwards
+                    lead += lat * side
+            if c.swing_lift_fore_aft_m > 0.0 and leg is not None:
+                # how far the foot stands behind (< 0: ahead of) its nominal place
+                nominal = float(self.model.nominal_feet[leg][0])
+                behind = nominal - float((np.asarray(p0)[:2] - self._body[:2]) @ ahead)
+                along = float(step @ ahead)
+                excess = abs(behind) - c.swing_lift_fore_aft_m
+                if excess > 0.0 and along * behind > 0.0:
+                    lead += np.sign(along) * min(excess, abs(along)) * ahead
+            if np.any(lead):
+                lift_xy = lead
         return gaitlib.SwingTrajectory(p0, p1, apex, dur, approach_m=c.swing_approach_m,
                                        approach_speed_m_s=c.swing_approach_speed_m_s,
                                        lift_xy=lift_xy)
@@ -1200,7 +1221,7 @@ class WalkingController:
         for k, leg in enumerate(legs):
             p0, p1 = self._feet[leg], targets[k]
             apex = self._apex(p0, p1)
-            swings.append(self._swing_trajectory(p0, p1, apex, dur))
+            swings.append(self._swing_trajectory(p0, p1, apex, dur, leg))
         approach = max(sw.approach_s for sw in swings)
         dur += approach
         body = self._body.copy()
