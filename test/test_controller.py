@@ -725,3 +725,26 @@ def test_inward_swing_lifts_sideways_only_towards_the_centre_line():
     off.reset(0.0)
     off._body = ctl._body.copy()
     assert off._swing_trajectory(out_rh, in_rh, in_rh[2] + 0.03, 0.4).lift_xy is None
+
+
+def test_fore_aft_lift_only_for_a_foot_far_from_its_nominal_place():
+    """swing_lift_fore_aft_m: a hind foot 10 cm behind its nominal place stepping 8 cm forward
+    makes the 5 cm beyond the threshold while lifting; 3 cm behind, or stepping further back,
+    it lifts straight up."""
+    m = load_robot_model('littledog')
+    yaw = np.radians(-20.0)
+    T = make_T(rot_z(yaw), [0.8, -0.1, m.standing_height_m])
+    ctl = WalkingController(m, WalkingConfig(swing_inward_lift=False,
+                                             swing_lift_fore_aft_m=0.05))
+    ctl.reset(0.0)
+    ctl._body = np.array([0.8, -0.1, m.standing_height_m, yaw, 0.0, 0.0])
+    nom = np.array(m.nominal_feet[2])                       # LH
+
+    def at(dx):
+        return transform_points(T, (nom + [dx, 0.0, 0.0])[None])[0]
+    ahead = np.array([np.cos(yaw), np.sin(yaw)])
+    sw = ctl._swing_trajectory(at(-0.10), at(-0.02), 0.05, 0.4, leg=2)
+    np.testing.assert_allclose(sw.lift_xy, 0.05 * ahead, atol=1e-9)
+    assert ctl._swing_trajectory(at(-0.03), at(0.05), 0.05, 0.4, leg=2).lift_xy is None
+    assert ctl._swing_trajectory(at(-0.10), at(-0.12), 0.05, 0.4, leg=2).lift_xy is None
+    assert ctl._swing_trajectory(at(-0.10), at(-0.02), 0.05, 0.4).lift_xy is None  # no leg
