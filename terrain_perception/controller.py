@@ -115,9 +115,10 @@ class WalkingConfig:
         True, 'a swing that moves the foot towards the body\'s centre line makes that sideways '
         'part while lifting (diagonally up and in) instead of at the apex')
     swing_lift_fore_aft_m: float = param(
-        0.05, 'a foot standing more than this behind or ahead of its nominal place (along the '
+        0.0, 'a foot standing more than this behind or ahead of its nominal place (along the '
         'body) makes the part of its step beyond this while lifting, when the step moves it '
-        'back towards that place; 0 = off [m]', 0.0, 1.0)
+        'back towards that place; 0 = off (0.05 crossed 12 of 12 rocks seeds on ground truth but '
+        'dragged the feet on flat strides: foot error 23 mm median) [m]', 0.0, 1.0)
     swing_approach_m: float = param(
         0.0, 'The last this much of a swing\'s lowering is a slow straight descent at '
         'swing_approach_speed_m_s (capped by the apex): ground up to this much higher than '
