@@ -882,8 +882,8 @@ class FootstepPlanner:
         # A trot step moves a foot by A along the heading, which cannot turn the stance: the
         # first period also turns each pair about the stance centre to the plan's heading
         # (at most max_turn_rad), or a trotting robot never turns towards its goal.
-        turn = (yaw - float(body_pose_from_feet(feet, 0.0)[3]) + np.pi) % (2 * np.pi) - np.pi
-        turn = float(np.clip(turn, -cfg.max_turn_rad, cfg.max_turn_rad))
+        feet_yaw = float(body_pose_from_feet(feet, 0.0)[3])
+        turn = self._turn_towards(yaw, feet_yaw) - feet_yaw
         centre = feet[:, :2].mean(axis=0)
         Rturn = np.array([[math.cos(turn), -math.sin(turn)], [math.sin(turn), math.cos(turn)]])
         for period in range(n_periods):
