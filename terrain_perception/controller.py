@@ -115,10 +115,11 @@ class WalkingConfig:
         True, 'a swing that moves the foot towards the body\'s centre line makes that sideways '
         'part while lifting (diagonally up and in) instead of at the apex')
     swing_lift_fore_aft_m: float = param(
-        0.0, 'a foot standing more than this behind or ahead of its nominal place (along the '
-        'body) makes the part of its step beyond this while lifting, when the step moves it '
-        'back towards that place; 0 = off (0.05 crossed 12 of 12 rocks seeds on ground truth but '
-        'dragged the feet on flat strides: foot error 23 mm median) [m]', 0.0, 1.0)
+        0.05, 'when no body pose reaches a swing\'s straight lift (a foot far behind or ahead '
+        'of its hip: rocks-6cm ground-truth seed 0 stalled on LH 10 cm behind), a foot '
+        'standing more than this behind or ahead of its nominal place (along the body) makes '
+        'the part of its step beyond this while lifting; only then: done on every step it '
+        'dragged the feet of flat strides (foot error 23 mm median); 0 = off [m]', 0.0, 1.0)
     swing_approach_m: float = param(
         0.0, 'The last this much of a swing\'s lowering is a slow straight descent at '
         'swing_approach_speed_m_s (capped by the apex): ground up to this much higher than '
@@ -256,6 +257,7 @@ class _Step:
     legs: tuple
     targets: np.ndarray           # (k, 3) contact points, odom
     gait: str
+    lift_fore_aft: bool = False   # set by _make_shift when only the fore-aft lift reaches
 
 
 class WalkingController:
@@ -958,6 +960,52 @@ class WalkingController:
         out[known, 2] = np.minimum(out[known, 2], cap[known])
         return out
 
+    def _shift_body(self, goal: np.ndarray, support: np.ndarray, margin: float, legs,
+                    targets: np.ndarray, names: str, fore_aft: bool = False):
+        """The body pose for the shift before swinging ``legs`` to ``targets``: the goal pose
+        moved so that the COG keeps ``margin`` inside ``support`` during the whole swing (its
+        feet sampled along :meth:`_swing_trajectory`), with every foot in reach; ``(body,
+        poses, full_shift)``, or None (``last_error`` says why) if no pose reaches them."""
+        m = self.model
+        body = goal.copy()
+        # Feet along the coming swing: the COG must keep the margin during all of it.
+        taus = np.linspace(0.0, 1.0, 13)
+        poses = np.repeat(self._feet[None], len(taus), axis=0)
+        for k, leg in enumerate(legs):
+            sw = self._swing_trajectory(self._feet[leg], targets[k],
+                                        self._apex(self._feet[leg], targets[k]), 1.0, leg,
+                                        fore_aft=fore_aft)
+            poses[:, leg] = sw.position(taus * sw.total_s)
+        nominal_off = transform_points(gaitlib.pose_to_T(goal), kinematics.com_base(
+            m, kinematics.standing_joint_angles(m))[None])[0, :2] - goal[:2]
+        mean, extra = nominal_off, 0.0
+        for _ in range(3):
+            body[2] = self._body_z(goal[2], body, poses, legs)
+            offs = self._com_offsets(body, poses)
+            if offs is not None:
+                mean = 0.5 * (offs.min(axis=0) + offs.max(axis=0))
+                extra = float(np.linalg.norm(offs - mean, axis=1).max())
+            cog, got = gaitlib.project_into_support(goal[:2] + mean, support, margin + extra)
+            body[:2] = cog - mean
+        body[2] = self._body_z(goal[2], body, poses, legs)
+        full_shift = True
+        if not self._reachable(body, poses):
+            full_shift = False
+            # The full COG shift puts a foot out of reach (e.g. past the abduction limit):
+            # shift less, towards the nominal body pose, as long as a margin remains.
+            for alpha in (0.2, 0.4, 0.6, 0.8, 1.0):
+                cand = body.copy()
+                cand[:2] = body[:2] + alpha * (goal[:2] - body[:2])
+                cand[2] = self._body_z(goal[2], cand, poses, legs)
+                if self._reachable(cand, poses):
+                    body = cand
+                    break
+            else:
+                self._step_error(f'no body pose keeps every foot in reach while stepping '
+                                 f'{names}: ' + '; '.join(self.last_ik_reasons[:2]))
+                return None
+        return body, poses, full_shift
+
     def _recenter(self, t0: float) -> Optional[_Segment]:
         """Shift the body back over its feet once the plan is exhausted: once per stance.
 
@@ -1015,44 +1063,25 @@ class WalkingController:
         goal = self._goal_pose(after)
         stay = [k for k in range(4) if k not in legs]
         support = self._feet[stay, :2]
-        body = goal.copy()
         margin = self.margin_m if len(stay) >= 3 else 0.0
-        # Feet along the coming swing: the COG must keep the margin during all of it.
-        taus = np.linspace(0.0, 1.0, 13)
-        poses = np.repeat(self._feet[None], len(taus), axis=0)
-        for k, leg in enumerate(legs):
-            sw = self._swing_trajectory(self._feet[leg], targets[k],
-                                        self._apex(self._feet[leg], targets[k]), 1.0, leg)
-            poses[:, leg] = sw.position(taus * sw.total_s)
         names = "+".join(LEG_NAMES[k] for k in legs)
-        nominal_off = transform_points(gaitlib.pose_to_T(goal), kinematics.com_base(
-            m, kinematics.standing_joint_angles(m))[None])[0, :2] - goal[:2]
-        mean, extra = nominal_off, 0.0
-        for _ in range(3):
-            body[2] = self._body_z(goal[2], body, poses, legs)
-            offs = self._com_offsets(body, poses)
-            if offs is not None:
-                mean = 0.5 * (offs.min(axis=0) + offs.max(axis=0))
-                extra = float(np.linalg.norm(offs - mean, axis=1).max())
-            cog, got = gaitlib.project_into_support(goal[:2] + mean, support, margin + extra)
-            body[:2] = cog - mean
-        body[2] = self._body_z(goal[2], body, poses, legs)
-        full_shift = True
-        if not self._reachable(body, poses):
-            full_shift = False
-            # The full COG shift puts a foot out of reach (e.g. past the abduction limit):
-            # shift less, towards the nominal body pose, as long as a margin remains.
-            for alpha in (0.2, 0.4, 0.6, 0.8, 1.0):
-                cand = body.copy()
-                cand[:2] = body[:2] + alpha * (goal[:2] - body[:2])
-                cand[2] = self._body_z(goal[2], cand, poses, legs)
-                if self._reachable(cand, poses):
-                    body = cand
-                    break
+        found = self._shift_body(goal, support, margin, legs, targets, names)
+        if found is None and self.config.swing_lift_fore_aft_m > 0.0:
+            # The straight lift is out of reach (a foot far behind or ahead of its hip, e.g.
+            # rocks-6cm ground-truth seed 0: LH 10 cm behind, every LH step refused here):
+            # lift it along the step instead. Only then, so that ordinary strides keep the
+            # straight lift (done always, it dragged the feet of flat strides that start
+            # more than 5 cm behind the nominal place).
+            first = self.last_error
+            found = self._shift_body(goal, support, margin, legs, targets, names,
+                                     fore_aft=True)
+            if found is None:
+                self.last_error = first
             else:
-                self._step_error(f'no body pose keeps every foot in reach while stepping '
-                                 f'{names}: ' + '; '.join(self.last_ik_reasons[:2]))
-                return None
+                step.lift_fore_aft = True
+        if found is None:
+            return None
+        body, poses, full_shift = found
         offs = self._com_offsets(body, poses)
         got = float(gaitlib.support_margin(body[:2] + offs, support).min())
         if len(stay) >= 3 and got < self.config.min_margin_fraction * margin:
@@ -1177,14 +1206,15 @@ class WalkingController:
         feet[:, 2] += g * dz
         return feet
 
-    def _swing_trajectory(self, p0, p1, apex: float, dur: float,
-                          leg: Optional[int] = None) -> gaitlib.SwingTrajectory:
+    def _swing_trajectory(self, p0, p1, apex: float, dur: float, leg: Optional[int] = None,
+                          fore_aft: bool = False) -> gaitlib.SwingTrajectory:
         """The swing from ``p0`` to ``p1``; with ``swing_inward_lift``, a foot that moves
         towards the body's centre line makes that sideways part while it lifts: a foot standing
         far out cannot be lifted straight up (the hip's abduction limit; rocks-6cm seed 1 stalled
-        60 s with RH 5 cm outside its nominal place and every RH step refused at lift-off). With
-        ``swing_lift_fore_aft_m``, a foot standing more than that behind or ahead of its nominal
-        place (along the body) also makes the part of its step beyond it while lifting."""
+        60 s with RH 5 cm outside its nominal place and every RH step refused at lift-off).
+        ``fore_aft`` (the shift asks for it only when the straight lift is out of reach): a foot
+        ``leg`` standing more than ``swing_lift_fore_aft_m`` behind or ahead of its nominal
+        place (along the body) also makes the part of its step beyond that while lifting."""
         c = self.config
         lift_xy = None
         if self._body is not None:
@@ -1198,7 +1228,7 @@ class WalkingController:
                 lat = float(step @ side)
                 if lat * out0 < 0.0:           # the move's sideways part points inwards
                     lead += lat * side
-            if c.swing_lift_fore_aft_m > 0.0 and leg is not None:
+            if fore_aft and c.swing_lift_fore_aft_m > 0.0 and leg is not None:
                 # how far the foot stands behind (< 0: ahead of) its nominal place
                 nominal = float(self.model.nominal_feet[leg][0])
                 behind = nominal - float((np.asarray(p0)[:2] - self._body[:2]) @ ahead)
@@ -1222,7 +1252,8 @@ class WalkingController:
         for k, leg in enumerate(legs):
             p0, p1 = self._feet[leg], targets[k]
             apex = self._apex(p0, p1)
-            swings.append(self._swing_trajectory(p0, p1, apex, dur, leg))
+            swings.append(self._swing_trajectory(p0, p1, apex, dur, leg,
+                                                 fore_aft=step.lift_fore_aft))
         approach = max(sw.approach_s for sw in swings)
         dur += approach
         body = self._body.copy()

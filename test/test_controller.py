@@ -728,9 +728,9 @@ def test_inward_swing_lifts_sideways_only_towards_the_centre_line():
 
 
 def test_fore_aft_lift_only_for_a_foot_far_from_its_nominal_place():
-    """swing_lift_fore_aft_m: a hind foot 10 cm behind its nominal place stepping 8 cm forward
-    makes the 5 cm beyond the threshold while lifting; 3 cm behind, or stepping further back,
-    it lifts straight up."""
+    """swing_lift_fore_aft_m (a swing the shift asks to lift along the step): a hind foot 10
+    cm behind its nominal place stepping 8 cm forward makes the 5 cm beyond the threshold
+    while lifting; 3 cm behind, or stepping further back, it lifts straight up."""
     m = load_robot_model('littledog')
     yaw = np.radians(-20.0)
     T = make_T(rot_z(yaw), [0.8, -0.1, m.standing_height_m])
@@ -743,8 +743,52 @@ def test_fore_aft_lift_only_for_a_foot_far_from_its_nominal_place():
     def at(dx):
         return transform_points(T, (nom + [dx, 0.0, 0.0])[None])[0]
     ahead = np.array([np.cos(yaw), np.sin(yaw)])
-    sw = ctl._swing_trajectory(at(-0.10), at(-0.02), 0.05, 0.4, leg=2)
-    np.testing.assert_allclose(sw.lift_xy, 0.05 * ahead, atol=1e-9)
-    assert ctl._swing_trajectory(at(-0.03), at(0.05), 0.05, 0.4, leg=2).lift_xy is None
-    assert ctl._swing_trajectory(at(-0.10), at(-0.12), 0.05, 0.4, leg=2).lift_xy is None
-    assert ctl._swing_trajectory(at(-0.10), at(-0.02), 0.05, 0.4).lift_xy is None  # no leg
+
+    def lift(a, b, **kw):
+        return ctl._swing_trajectory(at(a), at(b), 0.05, 0.4, fore_aft=True, **kw).lift_xy
+    np.testing.assert_allclose(lift(-0.10, -0.02, leg=2), 0.05 * ahead, atol=1e-9)
+    assert lift(-0.03, 0.05, leg=2) is None
+    assert lift(-0.10, -0.12, leg=2) is None
+    assert lift(-0.10, -0.02) is None                                  # no leg
+    assert ctl._swing_trajectory(at(-0.10), at(-0.02), 0.05, 0.4, leg=2).lift_xy is None
+
+
+def test_fore_aft_lift_is_used_only_when_the_straight_lift_is_out_of_reach(monkeypatch):
+    """The shift plans the straight lift first and the lift along the step only when no body
+    pose reaches the straight one; the swing then flies the path the shift checked. A hind
+    foot 10 cm behind its nominal place on flat ground (rocks-6cm ground-truth seed 0 stalled
+    on LH 10 cm behind its hip, refused at lift-off): the straight lift reaches, so the stride
+    keeps it (lifting along every such step dragged the feet of flat strides). With the
+    straight lift made unreachable (a mock joint limit: LH may not rise more than 1 cm within
+    1 cm of where it stands), the option is what lets the step through."""
+    m = load_robot_model('littledog')
+    nom = np.array(m.nominal_feet, float)
+    nom[:, 2] = 0.0
+    feet = nom.copy()
+    feet[2, 0] -= 0.10
+    target = nom[2] + [-0.01, 0.0, 0.0]
+    cfg = WalkingConfig(swing_lift_fore_aft_m=0.05)
+    asked = []
+    plain = WalkingController._swing_trajectory
+
+    def spy(self, *a, fore_aft=False, **kw):
+        asked.append(fore_aft)
+        return plain(self, *a, fore_aft=fore_aft, **kw)
+    monkeypatch.setattr(WalkingController, '_swing_trajectory', spy)
+    assert check_footsteps(m, cfg, feet, [2], [target]) == (1, '')
+    assert asked and not any(asked)                                    # straight lift only
+
+    reachable = WalkingController._reachable
+
+    def no_straight_lift(self, body, poses):
+        lh = np.asarray(poses)[:, 2]
+        if np.any((lh[:, 2] > feet[2, 2] + 0.01) & (lh[:, 0] < feet[2, 0] + 0.01)):
+            self.last_ik_reasons = ['leg LH: mock joint limit']
+            return False
+        return reachable(self, body, poses)
+    monkeypatch.setattr(WalkingController, '_reachable', no_straight_lift)
+    n, why = check_footsteps(m, WalkingConfig(swing_lift_fore_aft_m=0.0), feet, [2], [target])
+    assert n == 0 and 'no body pose keeps every foot in reach' in why
+    asked.clear()
+    assert check_footsteps(m, cfg, feet, [2], [target]) == (1, '')
+    assert True in asked and asked[-1] is True                         # the swing flew it
