@@ -120,6 +120,13 @@ class WalkingConfig:
         'standing more than this behind or ahead of its nominal place (along the body) makes '
         'the part of its step beyond this while lifting; only then: done on every step it '
         'dragged the feet of flat strides (foot error 23 mm median); 0 = off [m]', 0.0, 1.0)
+    shank_max_penetration_m: float = param(
+        0.0, 'A body pose that puts a shank\'s axis (knee to foot) more than this below the '
+        'height map, and deeper than the shank already is, is out of reach: the shank would '
+        'rest on the terrain and hold its foot in the air (rocks-6cm ground-truth seed 1 fell '
+        'so: six body shifts turned RH\'s shank into a rock, the foot hung 45 mm up and the '
+        'shank read as a support); no check without a map or where it is unknown; negative = '
+        'off [m]', -1.0, 1.0)
     swing_approach_m: float = param(
         0.0, 'The last this much of a swing\'s lowering is a slow straight descent at '
         'swing_approach_speed_m_s (capped by the apex): ground up to this much higher than '
@@ -1114,7 +1121,38 @@ class WalkingController:
         r = kinematics.solve_ik(self.model, kinematics.feet_in_base(T, centres))
         if not r.all_ok:
             self.last_ik_reasons = r.reasons
-        return r.all_ok
+            return False
+        return self._shanks_clear(T, r.q)
+
+    def _shank_depth(self, T: np.ndarray, q: np.ndarray) -> np.ndarray:
+        """``(..., 4)`` how far each shank's axis dips below the height map [m] (negative: its
+        clearance; -inf without a map) for the body pose ``T`` (4x4, odom) and joint angles
+        ``q`` ``(..., 4, 3)``; sampled from the knee to where the foot sphere begins."""
+        m = self.model
+        kn, ft = kinematics.knees(m, q), kinematics.forward(m, q)
+        s = np.linspace(0.0, max(1.0 - 2.0 * m.foot_radius_m / m.shank_length_m, 0.0), 6)
+        pts = kn[..., None, :] + s[:, None] * (ft - kn)[..., None, :]
+        pts = transform_points(self.T_map_odom @ T, pts.reshape(-1, 3)).reshape(pts.shape)
+        depth = gaitlib.terrain_height(self.height, pts[..., :2]) - pts[..., 2]
+        return depth.max(axis=-1)
+
+    def _shanks_clear(self, T: np.ndarray, q: np.ndarray) -> bool:
+        """No shank of the poses ``q`` ``(n, 4, 3)`` at body pose ``T`` dips deeper than
+        ``shank_max_penetration_m`` below the map and deeper than it does now (so a stance
+        that already touches does not freeze the robot)."""
+        tol = self.config.shank_max_penetration_m
+        if tol < 0.0 or self.height is None or self._q_last is None:
+            return True
+        depth = self._shank_depth(T, q)
+        now = self._shank_depth(gaitlib.pose_to_T(self._body),
+                                np.asarray(self._q_last, dtype=float).reshape(4, 3))
+        bad = depth > np.maximum(tol, now + 0.002)
+        if not bad.any():
+            return True
+        i, k = np.argwhere(bad)[0]
+        self.last_ik_reasons = [f'pose {i} leg {LEG_NAMES[k]}: shank {1000 * depth[i, k]:.0f} mm '
+                                f'into the terrain']
+        return False
 
     def _body_z(self, z_nominal: float, body: np.ndarray, poses: np.ndarray, legs) -> float:
         """Body height for a swing: the nominal one, raised so the swing foot stays

@@ -792,3 +792,30 @@ def test_fore_aft_lift_is_used_only_when_the_straight_lift_is_out_of_reach(monke
     asked.clear()
     assert check_footsteps(m, cfg, feet, [2], [target]) == (1, '')
     assert True in asked and asked[-1] is True                         # the swing flew it
+
+
+def test_a_body_shift_that_turns_a_shank_into_a_rock_is_refused():
+    """shank_max_penetration_m: LittleDog's hind knees point forwards, so moving the body
+    forward turns a hind shank down towards the ground ahead of its foot. With a 6 cm rock
+    3.5 cm ahead of RH, two front steps of 8 cm would push RH's shank 15 mm into it (the
+    robot would rest on the shank with the foot in the air); the controller (and so its dry
+    run) refuses the second and names the leg. Shorter steps, or no rock, or the check off
+    (negative): both steps go."""
+    m = load_robot_model('littledog')
+    nom = np.array(m.nominal_feet, float)
+    nom[:, 2] = 0.0
+    x_rock = nom[3, 0] + 0.035
+
+    def rock(xy):
+        x, y = np.asarray(xy)[..., 0], np.asarray(xy)[..., 1]
+        return np.where((x > x_rock) & (x < x_rock + 0.1) & (y < -0.03) & (y > -0.15), 0.06, 0.0)
+
+    def steps(adv):
+        return [1, 0], [nom[1] + [adv, 0.0, 0.0], nom[0] + [adv, 0.0, 0.0]]
+    n, why = check_footsteps(m, WalkingConfig(), nom, *steps(0.08), height=rock)
+    assert n == 1 and 'leg RH: shank' in why and 'into the terrain' in why
+    assert check_footsteps(m, WalkingConfig(), nom, *steps(0.03), height=rock) == (2, '')
+    assert check_footsteps(m, WalkingConfig(), nom, *steps(0.08),
+                           height=lambda xy: np.zeros(np.shape(xy)[:-1])) == (2, '')
+    assert check_footsteps(m, WalkingConfig(shank_max_penetration_m=-1.0), nom, *steps(0.08),
+                           height=rock) == (2, '')

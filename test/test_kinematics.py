@@ -211,3 +211,24 @@ def test_self_mask_of_a_float32_cloud_equals_that_of_its_float64_values():
     ints = np.round(flat[np.isfinite(flat).all(axis=1)][:50] * 100).astype(np.int64)  # widened
     np.testing.assert_array_equal(K.self_mask(m, q, ints, T, 1.0),
                                   K.self_mask(m, q, ints.astype(np.float64), T, 1.0))
+
+
+@pytest.mark.parametrize('name', ['littledog', 'frog'])
+def test_knees_sit_a_thigh_from_the_hip_and_a_shank_from_the_foot(name):
+    """kinematics.knees: the thigh's length from the hip-flexion joint, the shank's from the
+    foot centre, on the side knee_sign says (LittleDog: front knees behind, hind knees ahead
+    of the foot)."""
+    m = load_robot_model(name)
+    rng = np.random.default_rng(3)
+    lo, hi = m.joint_limits[..., 0], m.joint_limits[..., 1]
+    q = lo + rng.uniform(size=(50, 4, 3)) * (hi - lo)
+    kn, ft = K.knees(m, q), K.forward(m, q)
+    np.testing.assert_allclose(np.linalg.norm(ft - kn, axis=-1), m.shank_length_m, atol=1e-12)
+    side = np.array([1.0, -1.0, 1.0, -1.0]) * m.abduction_offset_m
+    c0, s0 = np.cos(q[..., 0]), np.sin(q[..., 0])
+    flexion = m.hip_offsets + np.stack([np.zeros_like(c0), c0 * side, s0 * side], -1)
+    np.testing.assert_allclose(np.linalg.norm(kn - flexion, axis=-1), m.thigh_length_m,
+                               atol=1e-12)
+    stand = K.standing_joint_angles(m)
+    ahead = (K.knees(m, stand) - K.forward(m, stand))[:, 0]
+    assert np.all(np.sign(ahead) == m.knee_sign)
