@@ -1129,7 +1129,8 @@ class WalkingController:
         clearance; -inf without a map) for the body pose ``T`` (4x4, odom) and joint angles
         ``q`` ``(..., 4, 3)``; sampled from the knee to where the foot sphere begins."""
         m = self.model
-        kn, ft = kinematics.knees(m, q), kinematics.forward(m, q)
+        lp = kinematics.leg_points(m, q)
+        kn, ft = lp[..., 2, :], lp[..., 3, :]                  # knee, foot centre
         s = np.linspace(0.0, max(1.0 - 2.0 * m.foot_radius_m / m.shank_length_m, 0.0), 6)
         pts = kn[..., None, :] + s[:, None] * (ft - kn)[..., None, :]
         pts = transform_points(self.T_map_odom @ T, pts.reshape(-1, 3)).reshape(pts.shape)

@@ -62,18 +62,8 @@ def _leg_arrays(model: RobotModel, q_or_p: np.ndarray, what: str) -> np.ndarray:
 
 def forward(model: RobotModel, q: np.ndarray) -> np.ndarray:
     """Foot centres ``(..., 4, 3)`` in base_link [m] from joint angles ``(..., 4, 3)`` [rad]."""
-    return _leg_point(model, q, model.shank_length_m)
-
-
-def knees(model: RobotModel, q: np.ndarray) -> np.ndarray:
-    """Knee joints ``(..., 4, 3)`` in base_link [m] from joint angles ``(..., 4, 3)`` [rad]
-    (the shank runs from here to :func:`forward`'s foot centre)."""
-    return _leg_point(model, q, 0.0)
-
-
-def _leg_point(model: RobotModel, q: np.ndarray, along_shank_m: float) -> np.ndarray:
     q = _leg_arrays(model, q, 'joint angles')
-    l1, l2 = model.thigh_length_m, along_shank_m
+    l1, l2 = model.thigh_length_m, model.shank_length_m
     q0, q1, q2 = q[..., 0], q[..., 1], q[..., 2]
     xp = -l1 * np.sin(q1) - l2 * np.sin(q1 + q2)
     yp = np.broadcast_to(LEG_SIDE * model.abduction_offset_m, xp.shape)

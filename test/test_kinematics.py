@@ -215,14 +215,14 @@ def test_self_mask_of_a_float32_cloud_equals_that_of_its_float64_values():
 
 @pytest.mark.parametrize('name', ['littledog', 'frog'])
 def test_knees_sit_a_thigh_from_the_hip_and_a_shank_from_the_foot(name):
-    """kinematics.knees: the thigh's length from the hip-flexion joint, the shank's from the
+    """kinematics.leg_points' knee (the controller's shank check uses it): the thigh's length from the hip-flexion joint, the shank's from the
     foot centre, on the side knee_sign says (LittleDog: front knees behind, hind knees ahead
     of the foot)."""
     m = load_robot_model(name)
     rng = np.random.default_rng(3)
     lo, hi = m.joint_limits[..., 0], m.joint_limits[..., 1]
     q = lo + rng.uniform(size=(50, 4, 3)) * (hi - lo)
-    kn, ft = K.knees(m, q), K.forward(m, q)
+    kn, ft = K.leg_points(m, q)[..., 2, :], K.forward(m, q)
     np.testing.assert_allclose(np.linalg.norm(ft - kn, axis=-1), m.shank_length_m, atol=1e-12)
     side = np.array([1.0, -1.0, 1.0, -1.0]) * m.abduction_offset_m
     c0, s0 = np.cos(q[..., 0]), np.sin(q[..., 0])
@@ -230,5 +230,5 @@ def test_knees_sit_a_thigh_from_the_hip_and_a_shank_from_the_foot(name):
     np.testing.assert_allclose(np.linalg.norm(kn - flexion, axis=-1), m.thigh_length_m,
                                atol=1e-12)
     stand = K.standing_joint_angles(m)
-    ahead = (K.knees(m, stand) - K.forward(m, stand))[:, 0]
+    ahead = (K.leg_points(m, stand)[:, 2] - K.forward(m, stand))[:, 0]
     assert np.all(np.sign(ahead) == m.knee_sign)
