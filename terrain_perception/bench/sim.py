@@ -49,6 +49,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help='also walk the rocks seeds with these overrides of the defaults, '
                         'e.g. \'{"planner": {"stride_centre": "rule"}, "controller": '
                         '{"shift_zmp_offset_m": 0.008}}\' (a third row, "variant")')
+    parser.add_argument('--rocks-course', default='rocks-6cm',
+                        choices=('rocks-6cm', 'rocks-12cm', 'stones-15cm'),
+                        help='course class of the --rocks-only walks, by the closed-loop '
+                        'benchmark\'s robot for it (stones-15cm: FROG-I); default rocks-6cm')
     parser.add_argument('--rocks-only', action='store_true',
                         help='only the rocks walks (no real-time factor and flat walks)')
     parser.add_argument('--no-localise', action='store_true',
@@ -112,8 +116,8 @@ def _flat_walk(robot: str, distance_m: float, gait: str = 'walk') -> dict:
 
 def _rocks_walk(course, start_x: float, goal_x: float, seed: int, sensing: bool = True,
                 planner_kw: Optional[dict] = None, walking_kw: Optional[dict] = None,
-                trace_path=None, localise: bool = True) -> dict:
-    """LittleDog walks ``course`` from ``start_x`` towards ``goal_x`` on footsteps planned on
+                trace_path=None, localise: bool = True, robot_name: str = 'littledog') -> dict:
+    """Robot ``robot_name`` walks ``course`` from ``start_x`` towards ``goal_x`` on footsteps planned on
     the true terrain (receding horizon, every plan dry-run through the controller's checks).
     ``planner_kw``/``walking_kw`` override :class:`PlannerConfig`/:class:`WalkingConfig`
     defaults. With ``trace_path`` the walk is traced (:mod:`terrain_perception.sim.trace`)
@@ -128,8 +132,8 @@ def _rocks_walk(course, start_x: float, goal_x: float, seed: int, sensing: bool 
     from terrain_perception.footsteps import PlannerConfig, FootstepPlanner
     from terrain_perception.sim.session import SimSession, SimSessionConfig
     from terrain_perception.sim.walk import WalkRunner
-    m = load_robot_model('littledog')
-    session = SimSession(SimSessionConfig(robot='littledog', start_x_m=start_x, settle_s=0.3,
+    m = load_robot_model(robot_name)
+    session = SimSession(SimSessionConfig(robot=robot_name, start_x_m=start_x, settle_s=0.3,
                                           course_seed=seed), course=course)
     try:
         client, robot, world = session.client, session.robot, session.world
@@ -201,7 +205,8 @@ def _rocks_walk(course, start_x: float, goal_x: float, seed: int, sensing: bool 
         trace.save(trace_path, seed=seed, status=status, fell=res.fell,
                    planner_kw=json.dumps(planner_kw or {}), walking_kw=json.dumps(wkw))
         extra = {'trace': str(trace_path), 'fall_report': fall_report(trace.arrays())}
-    return {**extra, 'robot': 'littledog', 'course': 'rocks-6cm', 'seed': seed,
+    return {**extra, 'robot': robot_name,
+            'course': str(course.metadata.get('class', 'rocks-6cm')), 'seed': seed,
             'start_x_m': start_x,
             'sensing': sensing,
             'goal_x_m': goal_x, 'reached': bool(res.T_end[0, 3] >= goal_x - 0.05),
@@ -240,12 +245,13 @@ def parse_rocks_variant(text: str) -> Optional[dict]:
     return {'planner': dict(v.get('planner', {})), 'controller': dict(v.get('controller', {}))}
 
 
-def _trace_path(trace_dir: str, seed: int, row: str = ''):
+def _trace_path(trace_dir: str, seed: int, row: str = '', course_class: str = 'rocks-6cm'):
     """Where a rocks walk's trace goes (None without ``--trace``)."""
     from pathlib import Path
     if not trace_dir:
         return None
-    return Path(trace_dir) / f'rocks6-seed{seed}{"-" + row if row else ""}.npz'
+    stem = 'rocks6' if course_class == 'rocks-6cm' else course_class
+    return Path(trace_dir) / f'{stem}-seed{seed}{"-" + row if row else ""}.npz'
 
 
 def _print_fall_reports(walks) -> None:
@@ -257,31 +263,34 @@ def _print_fall_reports(walks) -> None:
 
 def _rocks_seeds(n: int, start_x: float, goal_x: float, first: int = 0,
                  variant: Optional[dict] = None, trace_dir: str = '',
-                 localise: bool = True) -> dict:
-    """The ground-truth-footstep rocks walk on seeds first..first+n-1, defaults against the
-    baseline (and a variant of the defaults, if given); traced to ``trace_dir`` if given,
-    localised (:func:`_rocks_walk`) if asked."""
+                 localise: bool = True, course_class: str = 'rocks-6cm') -> dict:
+    """The ground-truth-footstep walk over ``course_class`` (by the closed-loop benchmark's
+    robot for it: LittleDog on the rocks, FROG-I on the stones) on seeds first..first+n-1,
+    defaults against the baseline (and a variant of the defaults, if given); traced to
+    ``trace_dir`` if given, localised (:func:`_rocks_walk`) if asked."""
+    from terrain_perception.bench.closed_loop import COURSES
     from terrain_perception.terrain import make_course
+    robot_name = COURSES[course_class]
     rows = {'default': [], 'baseline': []}
     if variant is not None:
         rows['variant'] = []
     seeds = list(range(first, first + n))
     for seed in seeds:
-        course = make_course('rocks-6cm', seed, 0.005)
-        rows['default'].append(_rocks_walk(course, start_x, goal_x, seed, localise=localise,
-                                           trace_path=_trace_path(trace_dir, seed, 'default')))
-        rows['baseline'].append(_rocks_walk(course, start_x, goal_x, seed,
-                                            planner_kw=ROCKS_BASELINE[0],
-                                            walking_kw=ROCKS_BASELINE[1], localise=localise,
-                                            trace_path=_trace_path(trace_dir, seed, 'baseline')))
+        course = make_course(course_class, seed, 0.005)
+        kw = dict(localise=localise, robot_name=robot_name)
+        rows['default'].append(_rocks_walk(
+            course, start_x, goal_x, seed, **kw,
+            trace_path=_trace_path(trace_dir, seed, 'default', course_class)))
+        rows['baseline'].append(_rocks_walk(
+            course, start_x, goal_x, seed, planner_kw=ROCKS_BASELINE[0],
+            walking_kw=ROCKS_BASELINE[1], **kw,
+            trace_path=_trace_path(trace_dir, seed, 'baseline', course_class)))
         if variant is not None:
-            rows['variant'].append(_rocks_walk(course, start_x, goal_x, seed,
-                                               planner_kw=variant['planner'],
-                                               walking_kw=variant['controller'],
-                                               localise=localise,
-                                               trace_path=_trace_path(trace_dir, seed,
-                                                                      'variant')))
-    print(f'\nrocks-6cm, ground-truth footsteps{", localised" if localise else ""}, '
+            rows['variant'].append(_rocks_walk(
+                course, start_x, goal_x, seed, planner_kw=variant['planner'],
+                walking_kw=variant['controller'], **kw,
+                trace_path=_trace_path(trace_dir, seed, 'variant', course_class)))
+    print(f'\n{course_class} ({robot_name}), ground-truth footsteps{", localised" if localise else ""}, '
           f'x {start_x} -> {goal_x} m, seeds '
           f'{seeds[0]}-{seeds[-1]}{" (held out: defaults chosen on 0-7)" if first >= 8 else ""} '
           f'(F = fell, X = crossed); baseline: {ROCKS_BASELINE_NAME} '
@@ -306,7 +315,10 @@ def _rocks_seeds(n: int, start_x: float, goal_x: float, first: int = 0,
               f'{summary[name]["falls"]}, mean advance {summary[name]["advanced_m_mean"]:.2f} m'
               + (f', crossing time median {t:.0f} s sim' if t is not None else ''))
     _print_fall_reports((name, r) for name, rs in rows.items() for r in rs)
-    return {'rocks6_seeds': summary, 'rocks6_seed_rows': rows, 'rocks_localised': localise}
+    # the keys keep their rocks-6cm names (the results of earlier sessions); 'course' and
+    # 'robot' say what was walked
+    return {'rocks6_seeds': summary, 'rocks6_seed_rows': rows, 'rocks_localised': localise,
+            'course': course_class, 'robot': robot_name}
 
 
 def run(args: argparse.Namespace) -> dict:
@@ -317,11 +329,15 @@ def run(args: argparse.Namespace) -> dict:
     variant = parse_rocks_variant(getattr(args, 'rocks_variant', '') or '')
     trace_dir = str(getattr(args, 'trace', '') or '')
     localise = not bool(getattr(args, 'no_localise', False))
+    rocks_course = str(getattr(args, 'rocks_course', '') or 'rocks-6cm')
+    if rocks_course != 'rocks-6cm' and not getattr(args, 'rocks_only', False):
+        raise ValueError(f'--rocks-course {rocks_course} needs --rocks-only (the full run walks '
+                         'rocks-6cm)')
     if getattr(args, 'rocks_only', False):
         if n_rocks <= 0:
             raise ValueError('--rocks-only needs --rocks-seeds N (N >= 1)')
         return _rocks_seeds(n_rocks, 0.4, 2.4, int(getattr(args, 'rocks_first_seed', 0)),
-                            variant, trace_dir, localise)
+                            variant, trace_dir, localise, rocks_course)
     course = make_course('rocks-6cm', seed, 0.005)
 
     rtf_rows = []
