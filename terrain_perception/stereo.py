@@ -107,6 +107,14 @@ class StereoConfig:
         'marks its pixels as mismatches [px]', 1, 10000)
     area_filling: bool = param(True, 'eight-relation row area filling (Shao II-B-2)')
     fill_passes: int = param(1, 'repetitions of the area-filling step (paper: 1)', 1, 64)
+    fattening_radius_px: int = param(
+        4, 'foreground-fattening guard: a pixel whose disparity exceeds the smallest valid '
+        'disparity within this many pixels (square window) by more than fattening_jump_px is '
+        'dropped; SAD windows straddling a depth edge give the background the foreground\'s '
+        'disparity, points floating above the ground behind every rock (0 = off)', 0, 64)
+    fattening_jump_px: float = param(
+        3.0, 'see fattening_radius_px: the disparity step [px] taken for a depth edge (above '
+        'the ground plane\'s own change across the window)', 0.0, 512.0)
     max_depth_m: float = param(3.0, 'points farther than this along z are dropped [m] '
                                '(paper 002 senses within 2 m)', 0.01, 1000.0)
     coarse_step_px: int = param(8, 'pixel stride of the coarse cloud in both directions [px]',
@@ -499,9 +507,12 @@ class StereoPipeline:
             invalid |= row_outliers_fixed(disp16, invalid, c.outlier_min_count,
                                           c.min_disparity, c.num_disparities)
         if not c.area_filling:
-            return fixed_to_float(disp16, invalid)
-        d = fill_first_pass_fixed(disp16, invalid)
-        return fill_rows(d, c.fill_passes - 1) if c.fill_passes > 1 else d
+            d = fixed_to_float(disp16, invalid)
+        else:
+            d = fill_first_pass_fixed(disp16, invalid)
+            if c.fill_passes > 1:
+                d = fill_rows(d, c.fill_passes - 1)
+        return drop_fattened(d, c.fattening_radius_px, c.fattening_jump_px)
 
     def process(self, left: np.ndarray, right: np.ndarray,
                 channel_order: str = 'rgb') -> StereoFrame:
@@ -512,11 +523,40 @@ class StereoPipeline:
 
 
 def postprocess(disparity: np.ndarray, config: StereoConfig) -> np.ndarray:
-    """The switchable post-processing of a float disparity map (outliers, then filling)."""
+    """The switchable post-processing of a float disparity map (outliers, filling, then the
+    fattening guard)."""
     d = disparity
     if config.outlier_removal:
         d = remove_row_outliers(d, config.outlier_min_count, config.min_disparity,
                                 config.num_disparities)
     if config.area_filling:
         d = fill_rows(d, config.fill_passes)
-    return d
+    return drop_fattened(d, config.fattening_radius_px, config.fattening_jump_px)
+
+
+def drop_fattened(disparity: np.ndarray, radius_px: int, jump_px: float) -> np.ndarray:
+    """Foreground-fattening guard (ours; not in Shao et al.): NaN where a pixel's disparity
+    exceeds the smallest valid disparity within ``radius_px`` (a square window) by more than
+    ``jump_px``.
+
+    A SAD window that straddles a depth edge is dominated by the nearer surface's texture, so
+    background pixels up to half a window from the edge take the foreground's disparity: their
+    points float above the ground behind every rock, at the rock's range, and a height map
+    fuses them as a ledge that is not there. This drops both sides of strong disparity steps
+    within the radius (some true foreground goes too). NaN pixels do not count as small.
+    ``radius_px`` 0 returns ``disparity`` unchanged.
+    """
+    r = int(radius_px)
+    if r <= 0:
+        return disparity
+    d = np.asarray(disparity, dtype=np.float32)
+    if d.ndim != 2:
+        raise ValueError(f'disparity must be (H, W), got shape {d.shape}')
+    valid = np.isfinite(d)
+    low = cv2.erode(np.where(valid, d, np.float32(np.inf)),
+                    cv2.getStructuringElement(cv2.MORPH_RECT, (2 * r + 1, 2 * r + 1)),
+                    borderType=cv2.BORDER_REPLICATE)
+    out = np.array(d, dtype=np.float32)
+    with np.errstate(invalid='ignore'):
+        out[valid & (d - low > np.float32(jump_px))] = np.nan
+    return out

@@ -8,8 +8,8 @@ from terrain_perception.camera import PinholeCamera, StereoCamera
 from terrain_perception.config import make_config
 from terrain_perception.stereo import (StereoConfig, StereoInputError, StereoMatcher,
                                        StereoPipeline, check_pair, coarse_subsample,
-                                       disparity_to_points, fill_rows, fixed_to_float,
-                                       normalise, remove_row_outliers, to_gray)
+                                       disparity_to_points, drop_fattened, fill_rows,
+                                       fixed_to_float, normalise, remove_row_outliers, to_gray)
 
 N = np.nan
 
@@ -20,6 +20,35 @@ def row(*vals):
 
 def assert_row(got, *want):
     np.testing.assert_array_equal(got, row(*want))
+
+
+# ----------------------------------------------------------------- fattening guard
+
+
+def test_fattening_guard_drops_both_sides_of_a_depth_edge_and_keeps_the_ground_ramp():
+    # ground: disparity growing 0.2 px per row (a plane seen from above); a rock (40 px) whose
+    # disparity the SAD window spread 3 px into the ground to its right (columns 40-42)
+    v = np.arange(60, dtype=np.float32)[:, None]
+    d = np.broadcast_to(10.0 + 0.2 * v, (60, 80)).copy()
+    d[20:40, 20:43] = 40.0
+    out = drop_fattened(d, 4, 3.0)
+    assert np.isnan(out[30, 39:43]).all()            # the fattened strip and the rock's rim
+    assert np.isnan(out[30, 20:24]).all()            # the rim on the other side
+    assert np.isfinite(out[30, 24:39]).all()         # the rock top more than 4 px from the edge
+    np.testing.assert_array_equal(out[30, 24:39], d[30, 24:39])
+    ground = np.ones_like(d, bool)
+    ground[16:44, 16:47] = False                     # farther than 4 px from the rock
+    np.testing.assert_array_equal(out[ground], d[ground])   # a 0.8 px change per window stays
+    assert drop_fattened(d, 0, 3.0) is d             # off
+
+
+def test_fattening_guard_ignores_holes_and_refuses_a_cloud():
+    d = np.full((20, 20), 30.0, np.float32)
+    d[5:15, 5:15] = np.nan                            # a hole is no small disparity
+    out = drop_fattened(d, 3, 2.0)
+    np.testing.assert_array_equal(np.isnan(out), np.isnan(d))
+    with pytest.raises(ValueError, match=r'\(H, W\)'):
+        drop_fattened(np.zeros((4, 4, 3), np.float32), 3, 2.0)
 
 
 # ----------------------------------------------------------------- area filling (Fig. 3)

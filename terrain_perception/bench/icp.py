@@ -165,7 +165,9 @@ def pose_errors(T_est: np.ndarray, T_true: np.ndarray) -> Dict[str, float]:
 
 
 def map_rmse(grid: GridMap, course: GridMap) -> Dict[str, float]:
-    """Height RMSE [m] of observed cells against the true surface at the cell centres."""
+    """Height RMSE [m] of observed cells against the true surface at the cell centres, the
+    p95 of the absolute error and ``above_5cm``: cells more than 5 cm above the truth (ledges
+    that are not there: a planner steps around them, a swing lifts over them)."""
     xs, ys = grid.cell_centers()
     X, Y = np.meshgrid(xs, ys, indexing='ij')
     truth = rc.interpolate_height(course, np.stack([X, Y], -1))
@@ -175,7 +177,8 @@ def map_rmse(grid: GridMap, course: GridMap) -> Dict[str, float]:
         return {'rmse_m': float('nan'), 'cells': 0, 'p95_abs_m': float('nan')}
     d = h[ok] - truth[ok]
     return {'rmse_m': float(np.sqrt(np.mean(d ** 2))), 'cells': int(ok.sum()),
-            'p95_abs_m': float(np.percentile(np.abs(d), 95))}
+            'p95_abs_m': float(np.percentile(np.abs(d), 95)),
+            'above_5cm': int(np.sum(d > 0.05))}
 
 
 # ------------------------------------------------------------------------------------------
@@ -272,10 +275,12 @@ def run_kiss(clouds: List[np.ndarray], T_dr: np.ndarray, T_base_camera: np.ndarr
 # ------------------------------------------------------------------------------------------
 # stereo captures
 # ------------------------------------------------------------------------------------------
-def stereo_clouds(course: GridMap, robot, T_true: np.ndarray, camera: PinholeCamera
-                  ) -> Optional[List[np.ndarray]]:
-    """Organized clouds from simulated stereo pairs through the stereo pipeline, or None when
-    the simulator's ``render_stereo`` is not available."""
+def stereo_clouds(course: GridMap, robot, T_true: np.ndarray, camera: PinholeCamera,
+                  **overrides) -> Optional[List[List[np.ndarray]]]:
+    """Organized clouds from simulated stereo pairs through the stereo pipeline (the default
+    config, then each of ``overrides``' StereoConfig changes, e.g. ``shao={'fattening_radius_px':
+    0}``, on the same images): one list of clouds per config, or None when the simulator's
+    ``render_stereo`` is not available."""
     try:
         world = importlib.import_module('terrain_perception.sim.world')
         stereo = importlib.import_module('terrain_perception.stereo')
@@ -284,10 +289,10 @@ def stereo_clouds(course: GridMap, robot, T_true: np.ndarray, camera: PinholeCam
     render = getattr(world, 'render_stereo', None)
     if render is None:
         return None
-    return _stereo_clouds(world, stereo, course, robot, T_true, camera)
+    return _stereo_clouds(world, stereo, course, robot, T_true, camera, overrides)
 
 
-def _stereo_clouds(world, stereo, course, robot, T_true, camera):
+def _stereo_clouds(world, stereo, course, robot, T_true, camera, overrides):
     import pybullet
     from pybullet_utils.bullet_client import BulletClient
     from terrain_perception.camera import StereoCamera
@@ -295,15 +300,17 @@ def _stereo_clouds(world, stereo, course, robot, T_true, camera):
     # search range covering the nearest ground the camera sees (~0.15 m)
     d_max = camera.fx * robot.baseline_m / 0.15
     cfg = stereo.StereoConfig(num_disparities=int(min(512, 16 * np.ceil(d_max / 16))))
-    pipe = stereo.StereoPipeline(cfg, pair)
+    pipes = [stereo.StereoPipeline(c, pair) for c in
+             [cfg] + [dataclasses.replace(cfg, **o) for o in overrides.values()]]
     T_bc = np.asarray(robot.T_base_camera)
     client = BulletClient(connection_mode=pybullet.DIRECT)
-    out = []
+    out: List[List[np.ndarray]] = [[] for _ in pipes]
     try:
         world.SimWorld(client, course, texture_seed=int(course.metadata.get('seed', 0)))
         for T in T_true:
             left, right, _ = world.render_stereo(client, T @ T_bc, pair)
-            out.append(pipe.process(left, right, 'rgb').points)
+            for clouds, pipe in zip(out, pipes):
+                clouds.append(pipe.process(left, right, 'rgb').points)
     finally:
         client.disconnect()
     return out
@@ -421,7 +428,10 @@ def run(args: argparse.Namespace) -> dict:
     if args.no_stereo:
         print('stereo-node clouds: skipped (--no-stereo)')
     else:
-        sclouds = stereo_clouds(course, robot, T_true, cam)
+        # the same images through Shao's post-processing alone (no fattening guard): the
+        # guard's effect on the map, from true poses
+        both = stereo_clouds(course, robot, T_true, cam, shao={'fattening_radius_px': 0})
+        sclouds, shao_clouds = (None, None) if both is None else both
         if sclouds is None:
             print('stereo-node clouds: NOT MEASURED (terrain_perception.sim.world.render_stereo '
                   'is not available)')
@@ -434,7 +444,10 @@ def run(args: argparse.Namespace) -> dict:
             rmse_stereo = rm_st['rmse_m']
             rm_st_true = map_rmse(map_at_true_poses(st_cfg, T_bc, sclouds, T_true, stamps, fb),
                                   course)
+            rm_shao = map_rmse(map_at_true_poses(st_cfg, T_bc, shao_clouds, T_true, stamps,
+                                                 fb), course)
             results['stereo'] = {'errors': e_st, 'map': rm_st, 'counters': st['counters'],
+                                 'map_at_true_poses_no_fattening_guard': rm_shao,
                                  'icp_ms_median': float(np.median(st['icp_ms'])),
                                  'icp_cpu_ms_median': float(np.median(st['icp_cpu_ms'])),
                                  'map_at_true_poses': rm_st_true,
@@ -447,6 +460,10 @@ def run(args: argparse.Namespace) -> dict:
             print(f'fine map height RMSE (stereo): {rmse_stereo * 1e3:.2f} mm over '
                   f'{rm_st["cells"]} cells; from true poses: '
                   f'{rm_st_true["rmse_m"] * 1e3:.2f} mm (the stereo clouds\' own error)')
+            print(f'from true poses, cells > 5 cm above the truth: {rm_st_true["above_5cm"]} '
+                  f'with the fattening guard (default), {rm_shao["above_5cm"]} with Shao\'s '
+                  f'post-processing alone (RMSE {rm_shao["rmse_m"] * 1e3:.2f} mm over '
+                  f'{rm_shao["cells"]} cells; guarded: {rm_st_true["cells"]} cells)')
             print(f'partial updates (x / y / yaw ... kept at the prior where the geometry does '
                   f'not constrain them): {results["stereo"]["partial_updates"]} of '
                   f'{len(sclouds) - 1} captures, '
@@ -463,6 +480,12 @@ def run(args: argparse.Namespace) -> dict:
         'yaw_err_icp_deg': e_ours['final_yaw_deg'],
         'map_rmse_depth_m': rm_depth['rmse_m'],
         'map_rmse_stereo_m': rmse_stereo,
+        # cells > 5 cm above the truth in the stereo map from true poses, with and without the
+        # stereo pipeline's fattening guard (None: no stereo run)
+        'map_above_5cm_stereo': results.get('stereo', {}).get('map_at_true_poses', {}).get(
+            'above_5cm'),
+        'map_above_5cm_stereo_no_guard': results.get('stereo', {}).get(
+            'map_at_true_poses_no_fattening_guard', {}).get('above_5cm'),
         'icp_ms_median': icp_med,
         'max_rate_hz': rate,
         'final_err_icp_stereo_m': results.get('stereo', {}).get('errors', {}).get(

@@ -7,7 +7,10 @@ the depth buffer, and scores, for each method:
 * ``bad2``: share of evaluable pixels whose disparity is missing or off by more than 2 px
   (holes count as bad); ``bad2_est``: the same among estimated pixels only; ``coverage``;
 * ``height_rmse_m``: RMSE of the height of the method's 3-D points (in the world) against the
-  true terrain height at the same x-y.
+  true terrain height at the same x-y;
+* ``too_near_est``: share of estimates more than 2 px too large (nearer than the surface: the
+  SAD window's foreground fattening at depth edges), ``above_2cm``: share of 3-D points more
+  than 2 cm above the true terrain (what a height map fuses as ledges that are not there).
 
 Evaluable pixels are those with a finite ground truth inside the searched disparity range whose
 match lies inside the right image (``u - d >= 0``); no method can do better elsewhere.
@@ -221,9 +224,13 @@ def score_disparity(est: np.ndarray, gt: np.ndarray, mask: np.ndarray,
         wrong = np.abs(est - gt) > threshold_px
     n = max(int(mask.sum()), 1)
     bad_est = int((wrong & have).sum())
+    with np.errstate(invalid='ignore'):
+        near = int(((est - gt > threshold_px) & have).sum())
     return {'bad2': float((n - have.sum() + bad_est) / n),
             'bad2_est': float(bad_est / max(int(have.sum()), 1)),
-            'coverage': float(have.sum() / n)}
+            'coverage': float(have.sum() / n),
+            # estimates too large: points nearer than the surface, above it in a downward view
+            'too_near_est': float(near / max(int(have.sum()), 1))}
 
 
 def height_errors(points_cam: np.ndarray, T_world_cam: np.ndarray, grid: GridMap) -> np.ndarray:
@@ -245,15 +252,16 @@ def make_sgbm(num_disparities: int, min_disparity: int = 0, block_size: int = 5)
                                  uniquenessRatio=10, speckleWindowSize=100, speckleRange=2)
 
 
-METHODS = ('stereobm_opencv_defaults', 'raw', 'outliers_only', 'filling_only', 'post',
-           'post_fill4', 'sgbm')
+METHODS = ('stereobm_opencv_defaults', 'raw', 'outliers_only', 'filling_only', 'post_shao',
+           'post', 'post_fill4', 'sgbm')
 METHOD_LABELS = {
     'stereobm_opencv_defaults': 'StereoBM, OpenCV defaults',
     'raw': 'raw StereoBM (our matcher)',
     'outliers_only': '+ row outlier removal',
     'filling_only': '+ area filling',
-    'post': '+ both (pipeline default)',
-    'post_fill4': '+ both, 4 filling passes',
+    'post_shao': '+ both (Shao II-B)',
+    'post': '+ both + fattening guard (default)',
+    'post_fill4': '+ both + guard, 4 fill passes',
     'sgbm': 'StereoSGBM (reference)',
 }
 
@@ -266,13 +274,15 @@ def disparities_of_all_methods(left: np.ndarray, right: np.ndarray,
     raw = matcher.match(nl, nr)
     plain = cv2.StereoBM.create(cfg.num_disparities, cfg.block_size_px)
     plain.setMinDisparity(cfg.min_disparity)
+    shao = replace(cfg, fattening_radius_px=0)      # the paper's steps alone
     out = {
         'stereobm_opencv_defaults': fixed_to_float(plain.compute(left, right), cfg.min_disparity),
         'raw': raw,
-        'outliers_only': postprocess(raw, replace(cfg, outlier_removal=True,
+        'outliers_only': postprocess(raw, replace(shao, outlier_removal=True,
                                                   area_filling=False)),
-        'filling_only': postprocess(raw, replace(cfg, outlier_removal=False,
+        'filling_only': postprocess(raw, replace(shao, outlier_removal=False,
                                                  area_filling=True)),
+        'post_shao': postprocess(raw, replace(shao, outlier_removal=True, area_filling=True)),
         'post': postprocess(raw, replace(cfg, outlier_removal=True, area_filling=True)),
         'post_fill4': postprocess(raw, replace(cfg, outlier_removal=True, area_filling=True,
                                                fill_passes=4)),
@@ -377,6 +387,8 @@ def run_simulated(quick: bool, renderer: str = 'raycast', views: int = 3,
                     err = height_errors(pts, T, grid)
                     s['height_rmse_m'] = float(np.sqrt(np.mean(err ** 2))) if len(err) else \
                         float('nan')
+                    # points floating > 2 cm above the terrain (a height map's phantom ledges)
+                    s['above_2cm'] = float(np.mean(err > 0.02)) if len(err) else float('nan')
                     scores[name] = s
                 frame = StereoPipeline(cfg, stereo).process(left, right)
                 true_pitch = camera_pitch_from_pose(T)
@@ -557,10 +569,10 @@ def run_files(args) -> dict:
             raise ValueError(f'ground truth is {gt.shape}, images are {left.shape}')
         mask = evaluable_mask(gt, cfg.min_disparity, cfg.num_disparities)
         scores = {m: score_disparity(d, gt, mask) for m, d in disps.items()}
-        print(f'{"method":30s} {"bad2":>7s} {"bad2_est":>8s} {"coverage":>8s}')
+        print(f'{"method":34s} {"bad2":>7s} {"bad2_est":>8s} {"coverage":>8s}')
         for m in METHODS:
             s = scores[m]
-            print(f'{METHOD_LABELS[m]:30s} {s["bad2"]:7.3f} {s["bad2_est"]:8.3f} '
+            print(f'{METHOD_LABELS[m]:34s} {s["bad2"]:7.3f} {s["bad2_est"]:8.3f} '
                   f'{s["coverage"]:8.3f}')
         figures.update({'bad2_raw': scores['raw']['bad2'], 'bad2_post': scores['post']['bad2'],
                         'bad2_sgbm': scores['sgbm']['bad2'],
@@ -568,7 +580,7 @@ def run_files(args) -> dict:
     else:
         print(f'{"method":30s} {"coverage (no ground truth)":>26s}')
         for m in METHODS:
-            print(f'{METHOD_LABELS[m]:30s} {np.isfinite(disps[m]).mean():26.3f}')
+            print(f'{METHOD_LABELS[m]:34s} {np.isfinite(disps[m]).mean():26.3f}')
         figures['coverage_post'] = float(np.isfinite(disps['post']).mean())
     if args.save_disparity is not None:
         np.save(args.save_disparity, disps['post'])
@@ -616,14 +628,16 @@ def run(args: argparse.Namespace) -> dict:
     print(f'\nSimulated set: {len(results)} pairs ({", ".join(sorted({r.robot for r in results}))}'
           f'; courses {", ".join(sorted({r.course for r in results}))}), bad2 = share of '
           'evaluable pixels missing or > 2 px off')
-    header = f'{"method":30s} {"bad2":>7s} {"bad2_est":>8s} {"coverage":>8s} {"h_rmse_m":>9s}'
+    header = (f'{"method":34s} {"bad2":>7s} {"bad2_est":>8s} {"coverage":>8s} {"h_rmse_m":>9s} '
+              f'{"too_near":>8s} {"above_2cm":>9s}')
     for robot in sorted({r.robot for r in results}) + ['all']:
         sub = [r for r in results if robot in ('all', r.robot)]
         print(f'\n[{robot}] ({len(sub)} pairs)\n{header}')
         for m in METHODS:
-            print(f'{METHOD_LABELS[m]:30s} {_mean(sub, m, "bad2"):7.3f} '
+            print(f'{METHOD_LABELS[m]:34s} {_mean(sub, m, "bad2"):7.3f} '
                   f'{_mean(sub, m, "bad2_est"):8.3f} {_mean(sub, m, "coverage"):8.3f} '
-                  f'{_mean(sub, m, "height_rmse_m"):9.4f}')
+                  f'{_mean(sub, m, "height_rmse_m"):9.4f} {_mean(sub, m, "too_near_est"):8.4f} '
+                  f'{_mean(sub, m, "above_2cm"):9.4f}')
 
     pitch = np.abs([r.pitch_err_deg for r in results])
     height = np.abs([r.height_err_m for r in results])
@@ -661,7 +675,8 @@ def run(args: argparse.Namespace) -> dict:
                     'pitch_err_plain_ransac_deg': r.pitch_err_plain_deg,
                     'scores': r.scores} for r in results],
         'methods_mean': {m: {k: _mean(results, m, k) for k in
-                             ('bad2', 'bad2_est', 'coverage', 'height_rmse_m')}
+                             ('bad2', 'bad2_est', 'coverage', 'height_rmse_m',
+                              'too_near_est', 'above_2cm')}
                          for m in METHODS},
         'timing_s': t,
         'pitch_err_deg_mean': float(pitch.mean()),
@@ -673,6 +688,8 @@ def run(args: argparse.Namespace) -> dict:
         'bad2_sgbm': _mean(results, 'sgbm', 'bad2'),
         'coverage_post': _mean(results, 'post', 'coverage'),
         'height_rmse_post_m': _mean(results, 'post', 'height_rmse_m'),
+        'above_2cm_post': _mean(results, 'post', 'above_2cm'),
+        'above_2cm_post_shao': _mean(results, 'post_shao', 'above_2cm'),
         'time_ratio_pipeline_vs_stereobm': t['ratio'],
         'pipeline_hz_640x480': 1.0 / t['pipeline_cpu_s'],
         'pitch_err_deg': float(pitch.max()),
