@@ -123,3 +123,22 @@ def test_a_localised_rocks_walk_lands_the_feet_where_planned(tmp_path):
                                   axis=-1)[stance]
     p90 = {loc: float(np.percentile(o, 90)) for loc, o in off.items()}
     assert p90[True] < 0.005 and p90[False] > 2.0 * p90[True], p90
+
+
+@pytest.mark.timeout(180)
+def test_frog_walks_in_among_the_stones_on_ground_truth_footsteps():
+    # terrain-bench sim --rocks-course stones-15cm: the closed-loop benchmark's FROG-I course,
+    # walked on footsteps planned on the true terrain (measured: 0.79 m, 16 steps, no fall).
+    from terrain_perception.bench import runner
+    from terrain_perception.bench.sim import _rocks_walk
+    from terrain_perception.terrain import make_course
+    course = make_course('stones-15cm', 0, 0.005)
+    xs, ys = course.cell_centers()
+    near = course['elevation'][(xs > 1.0) & (xs < 1.8)][:, np.abs(ys) < 0.2]
+    assert near.max() > 0.08                         # stones to walk among, not a flat strip
+    r = _rocks_walk(course, 0.8, 1.5, 0, robot_name='frog')
+    assert (r['robot'], r['course']) == ('frog', 'stones-15cm')
+    assert r['reached'] and not r['fell'] and r['steps'] >= 12, r['status']
+    assert r['foot_err_p95_m'] < 0.02
+    # the full sim run walks rocks-6cm only: another course is refused, by name
+    assert runner.main(['sim', '--rocks-course', 'stones-15cm', '--rocks-seeds', '1']) == 2
