@@ -44,7 +44,7 @@ from terrain_msgs.msg import Stance, TerrainGrid
 from visualization_msgs.msg import Marker, MarkerArray
 
 from terrain_perception import footsteps as fs
-from terrain_perception.config import param
+from terrain_perception.config import load_config, param
 from terrain_perception.controller import WalkingConfig, check_footsteps
 from terrain_perception.features import CostConfig
 from terrain_perception.grid import GridMap
@@ -73,9 +73,13 @@ class FootstepNodeConfig:
     imu_max_age_s: float = param(0.5, 'largest stamp gap between a cloud and the IMU sample '
                                  'used for its gravity [s]', 0.0, 3600.0)
     check_plans: bool = param(True, 'dry-run every walk plan through the walking controller\'s '
-                              'own stability and reach checks (WalkingConfig defaults) and keep '
+                              'own stability and reach checks (walking_config_file) and keep '
                               'the steps it accepts; if it refuses the first, start with '
                               'another leg (the status says so)')
+    walking_config_file: str = param(
+        '', 'the walking controller\'s parameter YAML (key walking_controller, e.g. '
+        'config/walking_controller.yaml) whose values the dry run uses, so that a parameter '
+        'changed there changes both; empty = the WalkingConfig defaults (read at start)')
     use_stance: bool = param(True, 'start plans from the controller\'s /walking/stance (its '
                              'real feet and next leg) instead of the nominal stance')
     stance_max_age_s: float = param(30.0, 'ignore a stance older than this (vs the map '
@@ -175,6 +179,12 @@ class FootstepPlannerNode(Node):
         # Steps the controller refused although the dry run accepted them (see RefusedSteps)
         self.refused = fs.RefusedSteps()
         self.walking_cfg = WalkingConfig()
+        if self.node_cfg.walking_config_file:
+            try:
+                self.walking_cfg = load_config(WalkingConfig, self.node_cfg.walking_config_file,
+                                               'walking_controller')
+            except (OSError, ValueError) as exc:
+                raise ValueError(f'walking_config_file: {exc}') from exc
         self.goal_xy: Optional[np.ndarray] = None
         self.imu: Optional[tuple] = None          # (stamp_s, quaternion xyzw)
         self.patches_map: Optional[PatchSet] = None

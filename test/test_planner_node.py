@@ -316,3 +316,20 @@ def test_cloud_and_imu_give_contact_patches_on_the_ground(ros_context, executor)
     assert plan.status == FootstepPlan.STATUS_OK, plan.status_text
     assert any(f.patch_index >= 0 for f in plan.footsteps)
     assert all(-1 <= f.patch_index < len(msg.patches) for f in plan.footsteps)
+
+
+def test_the_dry_run_reads_the_controllers_yaml(ros_context, executor, tmp_path):
+    # walking_config_file: a parameter changed in the controller's YAML changes the planner's
+    # dry run too (the launch profiles pass config/walking_controller.yaml); a bad file is
+    # refused at start with its name
+    from terrain_ros.env import config_path
+    y = tmp_path / 'walking.yaml'
+    y.write_text(config_path('walking_controller.yaml').read_text().replace(
+        'belly_clearance_m: 0.01', 'belly_clearance_m: 0.03'))
+    h = Harness(ros_context, executor, walking_config_file=str(y))
+    assert h.node.walking_cfg.belly_clearance_m == 0.03
+    executor.remove_node(h.node)
+    h.node.destroy_node()
+    with pytest.raises(ValueError, match='walking_config_file'):
+        FootstepPlannerNode(context=ros_context, parameter_overrides=[
+            Parameter('walking_config_file', value=str(tmp_path / 'missing.yaml'))])
