@@ -127,6 +127,15 @@ class WalkingConfig:
         'so: six body shifts turned RH\'s shank into a rock, the foot hung 45 mm up and the '
         'shank read as a support); no check without a map or where it is unknown; negative = '
         'off [m]', -1.0, 1.0)
+    belly_clearance_m: float = param(
+        -1.0, 'The body is raised (within the legs\' reach) so that its underside stays this '
+        'far above the highest map cell under its box: rocks-12cm ground-truth walks stopped '
+        'on 5 of 11 seeds with the belly on a 10-11 cm rock while the feet stood on the floor. '
+        'Off by default: at 0.01 the legs\' reach caps the rise at 0-1 cm where it is needed '
+        '(rocks-12cm seeds 0-11: 7 falls instead of 8, mean advance 0.75 m instead of 0.73, '
+        'none crossed) and it is not measured in the closed loop, where a phantom map cell '
+        'would raise the body too; no effect where the map is unknown; negative = off [m]',
+        -1.0, 1.0)
     swing_approach_m: float = param(
         0.0, 'The last this much of a swing\'s lowering is a slow straight descent at '
         'swing_approach_speed_m_s (capped by the apex): ground up to this much higher than '
@@ -1157,13 +1166,14 @@ class WalkingController:
 
     def _body_z(self, z_nominal: float, body: np.ndarray, poses: np.ndarray, legs) -> float:
         """Body height for a swing: the nominal one, raised so the swing foot stays
-        ``min_swing_hip_height`` below the hips and lowered so every foot stays in reach; if
+        ``min_swing_hip_height`` below the hips and the belly ``belly_clearance_m`` above the
+        map (:meth:`_belly_z`), and lowered so every foot stays in reach; if
         that is still not reachable everywhere (e.g. the abduction limit with a foot far out),
         the nearest height in +-4 cm at which every pose is reachable."""
         m = self.model
         z_min = float(poses[:, legs, 2].max()) + m.foot_radius_m + \
             self.config.min_swing_hip_height * m.standing_height_m if len(legs) else -np.inf
-        z = min(max(z_nominal, z_min), self._max_body_z(body, poses))
+        z = min(max(z_nominal, z_min, self._belly_z(body)), self._max_body_z(body, poses))
         cands = z + np.array([0.0] + [s * k * 0.004 for k in range(1, 11) for s in (1, -1)])
         R = gaitlib.pose_to_T(body)[:3, :3]
         centres = np.array(poses, dtype=float)
@@ -1172,6 +1182,24 @@ class WalkingController:
         local = (centres[None] - base - cands[:, None, None, None] * np.array([0, 0, 1.0])) @ R
         ok = kinematics.solve_ik(m, local, explain=False).ok.all(axis=(1, 2))
         return float(cands[int(np.argmax(ok))]) if ok.any() else z
+
+    def _belly_z(self, body: np.ndarray) -> float:
+        """Lowest body z (odom) keeping the underside of the body box ``belly_clearance_m``
+        above the height map under it (level body at ``body``'s x, y, yaw; box sampled every
+        ~2 cm); -inf without a map, with the check off or over unknown cells."""
+        c = self.config
+        if c.belly_clearance_m < 0.0 or self.height is None:
+            return -np.inf
+        length, width, thick = (float(v) for v in self.model.body_size_m)
+        u = np.linspace(-0.5 * length, 0.5 * length, max(int(np.ceil(length / 0.02)) + 1, 2))
+        v = np.linspace(-0.5 * width, 0.5 * width, max(int(np.ceil(width / 0.02)) + 1, 2))
+        U, V = (a.ravel() for a in np.meshgrid(u, v, indexing='ij'))
+        cy, sy = np.cos(body[3]), np.sin(body[3])
+        pts = np.stack([body[0] + cy * U - sy * V, body[1] + sy * U + cy * V,
+                        np.zeros_like(U)], axis=-1)
+        in_map = transform_points(self.T_map_odom, pts)
+        ground = gaitlib.terrain_height(self.height, in_map[:, :2]) - in_map[:, 2]  # in odom
+        return float(ground.max()) + 0.5 * thick + c.belly_clearance_m
 
     def _max_body_z(self, body: np.ndarray, feet_poses: np.ndarray) -> float:
         """Highest level-body z keeping every foot of ``feet_poses`` ``(n, 4, 3)`` within

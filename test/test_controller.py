@@ -819,3 +819,41 @@ def test_a_body_shift_that_turns_a_shank_into_a_rock_is_refused():
                            height=lambda xy: np.zeros(np.shape(xy)[:-1])) == (2, '')
     assert check_footsteps(m, WalkingConfig(shank_max_penetration_m=-1.0), nom, *steps(0.08),
                            height=rock) == (2, '')
+
+
+def test_the_body_rises_over_a_rock_under_its_belly_as_far_as_the_legs_reach():
+    """belly_clearance_m (off by default): rocks-12cm ground-truth walks stopped with
+    LittleDog's belly (11.5 cm up at the standing height) on 10-11 cm rocks between its feet.
+    At 0.01 a rock under the body makes the controller lift the body to keep the underside 1 cm
+    above it while the legs reach: 12 cm under a nominal stance -> 0.16 m; flat ground, the
+    check off, or a rock too tall for the legs (capped at their reach, not refused) leave it at
+    most there."""
+    m = load_robot_model('littledog')
+
+    def rock(h):
+        def f(xy):
+            x, y = np.asarray(xy)[..., 0], np.asarray(xy)[..., 1]
+            return np.where((np.abs(x) < 0.04) & (np.abs(y) < 0.03), h, 0.0)
+        return f
+
+    def top_of_body(height, **kw):
+        kw = {'belly_clearance_m': 0.01, **kw}
+        ctl = WalkingController(m, WalkingConfig(plan_timeout_s=1e3, **kw), height=height)
+        ctl.reset(0.0, None, make_T(np.eye(3), [0.0, 0.0, m.standing_height_m]))
+        target = ctl._feet[2] + [0.03, 0.0, 0.0]                      # LH 3 cm forward
+        ctl.set_footsteps([2], target[None], 'walk', 0.0)
+        t, q, z = 0.0, None, []
+        while t < 6.0 and ctl.steps_done == 0:
+            q = ctl.update(t, q).positions
+            z.append(ctl._body[2])
+            t += DT
+        assert ctl.steps_done == 1 and not ctl.last_error
+        return max(z)
+
+    half = 0.5 * float(m.body_size_m[2])
+    assert top_of_body(rock(0.12)) == pytest.approx(0.12 + half + 0.01, abs=0.002)
+    assert top_of_body(rock(0.0)) == pytest.approx(m.standing_height_m, abs=0.002)
+    assert top_of_body(rock(0.12), belly_clearance_m=-1.0) == pytest.approx(
+        m.standing_height_m, abs=0.002)
+    tall = top_of_body(rock(0.25))                                   # beyond any reach
+    assert m.standing_height_m + 0.01 < tall < 0.25
