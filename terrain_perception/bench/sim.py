@@ -117,8 +117,8 @@ def _flat_walk(robot: str, distance_m: float, gait: str = 'walk') -> dict:
 def _rocks_walk(course, start_x: float, goal_x: float, seed: int, sensing: bool = True,
                 planner_kw: Optional[dict] = None, walking_kw: Optional[dict] = None,
                 trace_path=None, localise: bool = True, robot_name: str = 'littledog') -> dict:
-    """Robot ``robot_name`` walks ``course`` from ``start_x`` towards ``goal_x`` on footsteps planned on
-    the true terrain (receding horizon, every plan dry-run through the controller's checks).
+    """Robot ``robot_name`` walks ``course`` from ``start_x`` towards ``goal_x`` on footsteps
+    planned on the true terrain (receding horizon, every plan dry-run through the controller's checks).
     ``planner_kw``/``walking_kw`` override :class:`PlannerConfig`/:class:`WalkingConfig`
     defaults. With ``trace_path`` the walk is traced (:mod:`terrain_perception.sim.trace`)
     to that .npz, and a fall's report is returned as ``fall_report``.
@@ -336,8 +336,13 @@ def run(args: argparse.Namespace) -> dict:
     if getattr(args, 'rocks_only', False):
         if n_rocks <= 0:
             raise ValueError('--rocks-only needs --rocks-seeds N (N >= 1)')
-        return _rocks_seeds(n_rocks, 0.4, 2.4, int(getattr(args, 'rocks_first_seed', 0)),
-                            variant, trace_dir, localise, rocks_course)
+        # from 0.6 m before the rough section to 0.4 m past it (rocks-6cm: x 0.4 -> 2.4 m;
+        # stones-15cm, 1.5 m of approach and 2 m of stones: 0.9 -> 3.9 m)
+        from terrain_perception.terrain import course_config
+        cc = course_config(rocks_course)
+        return _rocks_seeds(n_rocks, cc.approach_m - 0.6, cc.approach_m + cc.rough_length_m + 0.4,
+                            int(getattr(args, 'rocks_first_seed', 0)), variant, trace_dir,
+                            localise, rocks_course)
     course = make_course('rocks-6cm', seed, 0.005)
 
     rtf_rows = []
