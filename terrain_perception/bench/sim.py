@@ -118,7 +118,8 @@ def _rocks_walk(course, start_x: float, goal_x: float, seed: int, sensing: bool 
                 planner_kw: Optional[dict] = None, walking_kw: Optional[dict] = None,
                 trace_path=None, localise: bool = True, robot_name: str = 'littledog') -> dict:
     """Robot ``robot_name`` walks ``course`` from ``start_x`` towards ``goal_x`` on footsteps
-    planned on the true terrain (receding horizon, every plan dry-run through the controller's checks).
+    planned on the true terrain (receding horizon, every plan dry-run through the controller's
+    checks).
     ``planner_kw``/``walking_kw`` override :class:`PlannerConfig`/:class:`WalkingConfig`
     defaults. With ``trace_path`` the walk is traced (:mod:`terrain_perception.sim.trace`)
     to that .npz, and a fall's report is returned as ``fall_report``.
@@ -290,7 +291,8 @@ def _rocks_seeds(n: int, start_x: float, goal_x: float, first: int = 0,
                 course, start_x, goal_x, seed, planner_kw=variant['planner'],
                 walking_kw=variant['controller'], **kw,
                 trace_path=_trace_path(trace_dir, seed, 'variant', course_class)))
-    print(f'\n{course_class} ({robot_name}), ground-truth footsteps{", localised" if localise else ""}, '
+    print(f'\n{course_class} ({robot_name}), ground-truth footsteps'
+          f'{", localised" if localise else ""}, '
           f'x {start_x} -> {goal_x} m, seeds '
           f'{seeds[0]}-{seeds[-1]}{" (held out: defaults chosen on 0-7)" if first >= 8 else ""} '
           f'(F = fell, X = crossed); baseline: {ROCKS_BASELINE_NAME} '
