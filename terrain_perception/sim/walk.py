@@ -188,7 +188,10 @@ class WalkRunner:
             tilt = robot.base_tilt_deg()
             self.max_tilt = max(self.max_tilt, tilt)
             for gid in self.ground_ids:
-                pts = client.getContactPoints(bodyA=robot.body_id, bodyB=gid)
+                # Bullet also reports points of a near miss (its contact margin, e.g. a rock
+                # 2.5 mm under the belly, no force): only touching points count.
+                pts = [p for p in client.getContactPoints(bodyA=robot.body_id, bodyB=gid)
+                       if p[8] <= 0.0]
                 feet = set(int(i) for i in robot.foot_links)
                 if any(p[3] == -1 for p in pts):
                     self.fell = True
