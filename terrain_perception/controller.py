@@ -128,14 +128,14 @@ class WalkingConfig:
         'shank read as a support); no check without a map or where it is unknown; negative = '
         'off [m]', -1.0, 1.0)
     belly_clearance_m: float = param(
-        -1.0, 'The body is raised (within the legs\' reach) so that its underside stays this '
-        'far above the highest map cell under its box: rocks-12cm ground-truth walks stopped '
-        'on 5 of 11 seeds with the belly on a 10-11 cm rock while the feet stood on the floor. '
-        'Off by default: at 0.01 the legs\' reach caps the rise at 0-1 cm where it is needed '
-        '(rocks-12cm seeds 0-11: 7 falls instead of 8, mean advance 0.75 m instead of 0.73, '
-        'none crossed) and it is not measured in the closed loop, where a phantom map cell '
-        'would raise the body too; no effect where the map is unknown; negative = off [m]',
-        -1.0, 1.0)
+        0.012, 'The body is raised (within the legs\' reach) so that its underside stays this '
+        'far above the highest map cell under its box, and a body pose the reach leaves lower '
+        'than half of this (and lower than the body is now) is refused: rocks-12cm '
+        'ground-truth walks stopped with the belly on a 10-11 cm rock while the feet stood on '
+        'the floor. Alone, the reach capped the rise at 0-1 cm where it was needed (seeds '
+        '0-11: 7 falls instead of 8); with the planner\'s belly_clearance_m (0.015, above '
+        'this) and body path, see docs/BENCHMARKS.md; no effect where the map is unknown; '
+        'negative = off [m]', -1.0, 1.0)
     swing_approach_m: float = param(
         0.0, 'The last this much of a swing\'s lowering is a slow straight descent at '
         'swing_approach_speed_m_s (capped by the apex): ground up to this much higher than '
@@ -1035,6 +1035,8 @@ class WalkingController:
         if not self.config.recenter or self._recentred_at == self.steps_done:
             return None
         goal = self._goal_pose(self._feet)
+        # The nominal height, raised for the belly as a shift would be (within reach).
+        goal[2] = self._body_z(goal[2], goal, self._feet[None], [])
         if np.linalg.norm(goal[:3] - self._body[:3]) < 2e-3 and \
                 np.abs(goal[3:] - self._body[3:]).max() \
                 < 2e-3:
@@ -1131,7 +1133,25 @@ class WalkingController:
         if not r.all_ok:
             self.last_ik_reasons = r.reasons
             return False
-        return self._shanks_clear(T, r.q)
+        return self._shanks_clear(T, r.q) and self._belly_clear(body)
+
+    def _belly_clear(self, body: np.ndarray) -> bool:
+        """False (``last_ik_reasons`` says why) if the level body pose ``body`` holds its
+        underside less than half of ``belly_clearance_m`` above the map and lower than the
+        body now is below its own clearance height: the legs' reach capped the rise that
+        :meth:`_body_z` asked for, and the belly would come down on the rock."""
+        c = self.config
+        need = self._belly_z(body)
+        if not np.isfinite(need) or body[2] >= need - 0.5 * c.belly_clearance_m:
+            return True
+        if self._body is not None and need - body[2] <= self._belly_z(self._body) - \
+                self._body[2] + 1e-3:
+            return True
+        gap = body[2] - (need - c.belly_clearance_m)
+        self.last_ik_reasons = [f'belly {1000 * gap:.0f} mm above the terrain (the legs '
+                                f'cannot lift the body {1000 * c.belly_clearance_m:.0f} mm '
+                                'clear of it)']
+        return False
 
     def _shank_depth(self, T: np.ndarray, q: np.ndarray) -> np.ndarray:
         """``(..., 4)`` how far each shank's axis dips below the height map [m] (negative: its

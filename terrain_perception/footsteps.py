@@ -44,6 +44,8 @@ from typing import Callable, List, Optional, Tuple
 import numpy as np
 
 from terrain_perception import features
+from terrain_perception.body_path import (BodyPath, BodyPathSettings, belly_samples,
+                                          plan_body_path, top_field)
 from terrain_perception.config import param
 from terrain_perception.gait import body_pose_from_feet
 from terrain_perception.grid import COST, ELEVATION, FILLED, OBSERVED, UPPER_BOUND, GridMap
@@ -105,6 +107,31 @@ class PlannerConfig:
                                0.0, 1e3)
     stability_margin_m: float = param(0.01, 'least distance from the COG to the support '
                                       'triangle edges during a swing [m]', 0.0, 1.0)
+    belly_clearance_m: float = param(
+        0.015, 'every planned body pose keeps the underside of the body box this far above the '
+        'highest map cell under it, rising (within the legs\' reach) or crouching less where '
+        'that keeps it so, and a foothold whose next body pose cannot is no candidate: '
+        'rocks-12cm ground-truth walks ended with LittleDog\'s belly (11.5 cm up standing) on '
+        'a 10-11 cm rock while all four feet stood on the floor; unknown cells do not count; '
+        'negative = off [m]', -1.0, 1.0)
+    body_path: bool = param(
+        True, "steer along a body path (terrain_perception.body_path) that keeps the belly "
+        'belly_clearance_m clear of the map with the feet between the rocks, instead of '
+        'straight at the goal (or along the goal-less line): on rocks-12cm every course has '
+        'such lines, mostly beside the centre line; off with belly_clearance_m < 0')
+    body_path_lookahead_m: float = param(
+        0.3, 'the plan heads for the point this far along the body path [m]', 0.01, 10.0)
+    body_path_resolution_m: float = param(0.025, 'lattice step of the body path search [m]',
+                                          0.005, 1.0)
+    body_path_headroom_m: float = param(
+        0.04, 'the body path prefers at least this much room under the belly; it costs '
+        '1 + body_path_weight x the shortfall share per metre [m]', 0.0, 1.0)
+    body_path_weight: float = param(3.0, 'see body_path_headroom_m [-]', 0.0, 1e3)
+    body_path_corridor_m: float = param(
+        0.3, 'the body path keeps the body within this distance of the route: the line from '
+        'where the first plan for the current goal started to the goal (without a goal, the '
+        'goal-less line): going round a rock field is not crossing it; 0 = anywhere on the '
+        'map [m]', 0.0, 100.0)
     min_crouch: float = param(0.8, 'lowest body height as a share of the standing height when '
                               'crouching keeps the legs in reach', 0.3, 1.0)
     reach_fraction: float = param(0.95, 'largest hip-to-foot distance as a share of the leg '
@@ -496,6 +523,14 @@ class FootstepPlanner:
         self._refusal_check = None      # set by plan_checked while it runs the recovery
         # Without a goal: the line to walk along, (origin (2,), unit direction (2,)) in the map.
         self.straight_line: Optional[Tuple[np.ndarray, np.ndarray]] = None
+        # The body box's underside, sampled every <= 2 cm, in base_link; the map's heights
+        # max-filtered over one sample spacing (set_map) make the samples' maximum the maximum
+        # under the whole box.
+        self._belly_pts, self._belly_spacing = belly_samples(robot)
+        self._belly_top: Optional[np.ndarray] = None
+        self._belly_blocked = False
+        self.body_path: Optional[BodyPath] = None      # the last plan's (body_path on)
+        self._route: Optional[Tuple[np.ndarray, np.ndarray]] = None    # (start, goal)
 
     @property
     def A(self) -> float:
@@ -523,6 +558,9 @@ class FootstepPlanner:
         self.grid, self.cost = grid, cost
         self._dev = None     # (i0, j0, Dev(h) of the cells from there): see _area_flat
         self.allowed = candidate_mask(grid, self.cfg) & np.isfinite(cost)
+        self._belly_top = None
+        if self.cfg.belly_clearance_m >= 0:
+            self._belly_top = top_field(grid, self._belly_spacing)
         if self.cfg.max_unevenness > 0:
             k = self.cfg.map_safety_factor
             self.allowed &= ~unsafe_cells(grid[ELEVATION], grid.resolution_m,
@@ -681,6 +719,9 @@ class FootstepPlanner:
                 return FootstepPlan(STATUS_GOAL_REACHED, f'goal reached ({remaining:.3f} m away)',
                                     final_body_pose=T.copy())
             yaw = self._turn_towards(float(np.arctan2(d[1], d[0])), yaw_now)
+        self.body_path = None
+        if self.cfg.body_path and self.cfg.belly_clearance_m >= 0:
+            yaw = self._along_body_path(body_xy, yaw_now, yaw, goal_xy)
         if feet is None:
             Tb = T.copy()
             Tb[:3, :3] = body_pose(body_xy, np.zeros((4, 3)), yaw_now, self.robot)[:3, :3]
@@ -713,6 +754,41 @@ class FootstepPlanner:
         plan.initial_feet = feet.copy()
         plan.yaw = yaw
         return plan
+
+    def _along_body_path(self, body_xy: np.ndarray, yaw_now: float, yaw: float,
+                         goal_xy: Optional[np.ndarray]) -> float:
+        """The plan's heading along a body path (:mod:`terrain_perception.body_path`) to the
+        goal, or without one to a point 2 m on along the goal-less line: towards the point
+        ``body_path_lookahead_m`` along it, turning by at most max_turn_rad."""
+        c = self.cfg
+        route = None
+        if goal_xy is not None:
+            aim = np.asarray(goal_xy, dtype=np.float64).reshape(-1)[:2]
+            if self._route is None or np.hypot(*(self._route[1] - aim)) > 0.01:
+                self._route = (np.array(body_xy, dtype=np.float64), aim.copy())
+            route = self._route
+        elif self.straight_line is not None:
+            origin, u = self.straight_line
+            aim = origin + (float(np.dot(body_xy - origin, u)) + 2.0) * u
+            route = (origin, origin + 1e3 * u)
+        else:
+            aim = body_xy + 2.0 * np.array([np.cos(yaw), np.sin(yaw)])
+        if goal_xy is None:
+            self._route = None
+        corridor = (None if route is None or c.body_path_corridor_m <= 0
+                    else (route[0], route[1], c.body_path_corridor_m))
+        d = aim - body_xy
+        if np.hypot(*d) < 1e-6:
+            return yaw
+        self.body_path = plan_body_path(
+            self.grid, self.robot, body_xy, aim, float(np.arctan2(d[1], d[0])),
+            BodyPathSettings(c.body_path_resolution_m, c.belly_clearance_m,
+                             c.body_path_headroom_m, c.body_path_weight),
+            top=self._belly_top, corridor=corridor)
+        p = self.body_path.lookahead(c.body_path_lookahead_m, aim) - body_xy
+        if np.hypot(*p) < 1e-6:
+            return yaw
+        return self._turn_towards(float(np.arctan2(p[1], p[0])), yaw_now)
 
     def _turn_towards(self, bearing: float, yaw_now: float) -> float:
         """The plan's heading: towards ``bearing`` by at most max_turn_rad (a sudden heading
@@ -935,12 +1011,22 @@ class FootstepPlanner:
 
     def _body_in_reach(self, body_xy, feet, yaw) -> Optional[np.ndarray]:
         """Body pose over ``feet`` at ``body_xy`` with every foot in reach: standing height
-        first, then crouching (posture adjustment) down to ``min_crouch`` of it."""
+        first, then crouching (posture adjustment) down to ``min_crouch`` of it. With
+        ``belly_clearance_m`` the body box's underside stays that far above the map: the
+        body crouches no lower than that, and rises above the standing height when a rock
+        under it needs it; None (``_belly_blocked`` set) when the legs cannot reach then."""
+        h = self.robot.standing_height_m
         levels = np.linspace(1.0, self.cfg.min_crouch, 4)
         T = body_pose(body_xy, feet, yaw, self.robot)
+        self._belly_blocked = False
+        need = self._belly_need(T)
+        if need > 0.0:
+            levels = np.array([1.0 + need / h])
+        elif np.isfinite(need):
+            levels = levels[(1.0 - levels) * h <= -need]
         p = (feet + [0.0, 0.0, self.robot.foot_radius_m] - T[:3, 3]) @ T[:3, :3]
         # Lowering the base by dh along its own z raises every foot by dh in base_link.
-        drop = (1.0 - levels) * self.robot.standing_height_m
+        drop = (1.0 - levels) * h
         P = p[None] + drop[:, None, None] * np.array([0.0, 0.0, 1.0])
         # Distance check for all heights at once; IK level by level, usually one call.
         near = np.all(np.linalg.norm(P - np.array(self.robot.leg_plane_offsets), axis=-1)
@@ -949,11 +1035,26 @@ class FootstepPlanner:
                   if stance_in_reach(self.robot, P[i:i + 1], self.cfg.reach_fraction).all()),
                  None)
         if k is None:
+            self._belly_blocked = need > 0.0 or len(levels) < 4
             return None
         self._last_crouch = float(levels[k])
         T = T.copy()
         T[:3, 3] -= drop[k] * T[:3, 2]
         return T
+
+    def _belly_need(self, T: np.ndarray) -> float:
+        """How far the body at pose ``T`` must rise along its z axis for its underside to clear
+        the map by ``belly_clearance_m`` [m] (negative: how far it may sink); -inf with the
+        check off or nothing known under the body."""
+        if self._belly_top is None:
+            return -np.inf
+        pts = self._belly_pts @ T[:3, :3].T + T[:3, 3]
+        ij, inside = self._cells(pts[:, :2])
+        if not np.any(inside):
+            return -np.inf
+        top = self._belly_top[ij[inside, 0], ij[inside, 1]]
+        gap = pts[inside, 2] - top
+        return float(self.cfg.belly_clearance_m - gap.min()) / max(float(T[2, 2]), 0.5)
 
     # ---- walk (crawl) beam search ------------------------------------------------------------
     def _area_cells(self, state: _State, leg: int, fu0: np.ndarray, wL0: float, A: float,
@@ -1092,11 +1193,17 @@ class FootstepPlanner:
         centre = inset.mean(axis=0)
         options = [first] + [first + t * (centre - first) for t in (0.35, 0.7, 1.0)] + [
             _project_to_triangle(nominal - 0.25 * A * self.hdir, inset)]
+        belly = False
         for cog in options:
             Tb = self._body_in_reach(cog, feet, yaw)
             if Tb is not None:
                 break
+            belly |= self._belly_blocked
         if Tb is None:
+            if belly:
+                return None, (f'no body pose for swinging {LEG_NAMES[leg]} keeps the belly '
+                              f'{self.cfg.belly_clearance_m} m above the terrain with every '
+                              'stance leg in reach'), None
             return None, (f'shifting the COG into the support triangle for swinging '
                           f'{LEG_NAMES[leg]} puts a stance leg out of reach'), None
         return cog, Tb, float(self.robot.standing_height_m * self._last_crouch)

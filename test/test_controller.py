@@ -822,12 +822,12 @@ def test_a_body_shift_that_turns_a_shank_into_a_rock_is_refused():
 
 
 def test_the_body_rises_over_a_rock_under_its_belly_as_far_as_the_legs_reach():
-    """belly_clearance_m (off by default): rocks-12cm ground-truth walks stopped with
-    LittleDog's belly (11.5 cm up at the standing height) on 10-11 cm rocks between its feet.
-    At 0.01 a rock under the body makes the controller lift the body to keep the underside 1 cm
-    above it while the legs reach: 12 cm under a nominal stance -> 0.16 m; flat ground, the
-    check off, or a rock too tall for the legs (capped at their reach, not refused) leave it at
-    most there."""
+    """belly_clearance_m: rocks-12cm ground-truth walks stopped with LittleDog's belly
+    (11.5 cm up at the standing height) on 10-11 cm rocks between its feet. At 0.01 a rock
+    under the body makes the controller lift the body to keep the underside 1 cm above it
+    while the legs reach: 12 cm under a nominal stance -> 0.16 m; flat ground or the check off
+    leave it at the standing height; a rock already under the body and too tall for the legs
+    is not made worse (capped at their reach; the robot was standing on it already)."""
     m = load_robot_model('littledog')
 
     def rock(h):
@@ -857,3 +857,30 @@ def test_the_body_rises_over_a_rock_under_its_belly_as_far_as_the_legs_reach():
         m.standing_height_m, abs=0.002)
     tall = top_of_body(rock(0.25))                                   # beyond any reach
     assert m.standing_height_m + 0.01 < tall < 0.25
+
+
+def test_a_body_shift_that_lowers_the_belly_onto_a_rock_is_refused():
+    """A 14 cm block just ahead of the body: two 8 cm front steps move the body forward over
+    its edge, where the legs cannot lift the belly 1.2 cm clear of it (it would need 0.182 m,
+    beyond their reach from the floor). The controller (and its dry run) refuses the step
+    that gets there and says why; a 10 cm block it rises over; with the check off the
+    steps go (and the belly comes down on the block)."""
+    m = load_robot_model('littledog')
+    nom = np.array(m.nominal_feet, float)
+    nom[:, 2] = 0.0
+    front = 0.5 * float(m.body_size_m[0])
+
+    def block(h):
+        def f(xy):
+            x, y = np.asarray(xy)[..., 0], np.asarray(xy)[..., 1]
+            return np.where((x > front + 0.005) & (x < front + 0.06) & (np.abs(y) < 0.04),
+                            h, 0.0)
+        return f
+
+    steps = [3, 1, 2, 0], [nom[3] + [0.04, 0, 0], nom[1] + [0.08, 0, 0], nom[2] + [0.04, 0, 0],
+                           nom[0] + [0.08, 0, 0]]
+    n, why = check_footsteps(m, WalkingConfig(), nom, *steps, height=block(0.14))
+    assert n < 4 and 'belly' in why and 'above the terrain' in why, (n, why)
+    assert check_footsteps(m, WalkingConfig(), nom, *steps, height=block(0.10)) == (4, '')
+    assert check_footsteps(m, WalkingConfig(belly_clearance_m=-1.0), nom, *steps,
+                           height=block(0.14)) == (4, '')

@@ -325,7 +325,7 @@ def test_the_dry_run_reads_the_controllers_yaml(ros_context, executor, tmp_path)
     from terrain_ros.env import config_path
     y = tmp_path / 'walking.yaml'
     y.write_text(config_path('walking_controller.yaml').read_text().replace(
-        'belly_clearance_m: -1.0', 'belly_clearance_m: 0.03'))
+        'belly_clearance_m: 0.012', 'belly_clearance_m: 0.03'))
     h = Harness(ros_context, executor, walking_config_file=str(y))
     assert h.node.walking_cfg.belly_clearance_m == 0.03
     executor.remove_node(h.node)
