@@ -22,6 +22,9 @@ Publications:
     /contact_patches/markers  visualization_msgs/MarkerArray (reliable)
     /map/cost_grid            nav_msgs/OccupancyGrid (reliable, transient local): cost scaled
                               to 0..100 for viewers (-1 unknown)
+    /footstep_plan/body_path  nav_msgs/Path (reliable): the body path the plan steered along
+                              (``planner.body_path``), at the map's height under it; empty
+                              when the plan had none
     ~/diagnostics             diagnostic_msgs/DiagnosticArray: counters of refused input
 
 Bad input never kills the node: a malformed message is counted and logged once; a map or pose
@@ -35,7 +38,7 @@ from typing import Optional
 
 import numpy as np
 from geometry_msgs.msg import Point, PoseStamped, Vector3
-from nav_msgs.msg import OccupancyGrid
+from nav_msgs.msg import OccupancyGrid, Path
 from rclpy.node import Node
 from sensor_msgs.msg import Imu, PointCloud2
 from terrain_msgs.msg import ContactPatch, ContactPatchArray, Footstep as FootstepMsg
@@ -200,6 +203,8 @@ class FootstepPlannerNode(Node):
         self.pub_patch_markers = self.create_publisher(MarkerArray, '/contact_patches/markers',
                                                        RELIABLE_QOS)
         self.pub_cost = self.create_publisher(OccupancyGrid, '/map/cost_grid', LATCHED_QOS)
+        self.pub_body_path = self.create_publisher(Path, '/footstep_plan/body_path',
+                                                   RELIABLE_QOS)
 
         self.create_subscription(TerrainGrid, '/map/filled', self._on_map, LATCHED_QOS)
         self.create_subscription(PointCloud2, '/stereo/points', self._on_cloud, SENSOR_QOS)
@@ -385,8 +390,26 @@ class FootstepPlannerNode(Node):
         if plan.status not in (fs.STATUS_OK, fs.STATUS_GOAL_REACHED):
             self.counters.bump(f'plan_status_{plan.status}', plan.status_text)
         self.pub_plan.publish(plan_to_msg(plan, frame, stamp))
+        self.pub_body_path.publish(self._body_path_msg(frame, stamp))
         if self.pub_plan_markers.get_subscription_count() > 0:
             self.pub_plan_markers.publish(self._plan_markers(plan, frame, stamp))
+
+    def _body_path_msg(self, frame: str, stamp) -> Path:
+        """The planner's last body path as a nav_msgs/Path (z: the map under it)."""
+        out = Path()
+        out.header = make_header(frame, stamp)
+        bp = self.planner.body_path
+        if bp is None or self.grid is None:
+            return out
+        z = self.grid.sample('elevation', bp.points)
+        for (x, y), h in zip(bp.points, z):
+            p = PoseStamped()
+            p.header = out.header
+            p.pose.position = Point(x=float(x), y=float(y),
+                                    z=float(h) if np.isfinite(h) else 0.0)
+            p.pose.orientation.w = 1.0
+            out.poses.append(p)
+        return out
 
     # ------------------------------------------------------------------ markers
 

@@ -5,7 +5,7 @@ explanatory empty plan and the node keeps running."""
 import numpy as np
 import pytest
 from geometry_msgs.msg import Point, PoseStamped
-from nav_msgs.msg import OccupancyGrid
+from nav_msgs.msg import OccupancyGrid, Path
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from sensor_msgs.msg import Imu, PointCloud2
@@ -155,6 +155,40 @@ def test_map_pose_goal_give_the_core_plan_and_a_cost_grid(ros_context, executor)
     got = np.array([[f.position.x, f.position.y, f.position.z] for f in h.plans[-1].footsteps])
     np.testing.assert_allclose(got, [s.position for s in want.footsteps], atol=1e-6)
 
+
+
+def test_the_body_path_round_a_tall_rock_is_published(ros_context, executor):
+    # An 11 cm block on the way to the goal (LittleDog's belly is 11.5 cm up): the plan
+    # steers round it along the core's body path, published as a nav_msgs/Path at the map's
+    # height; on open ground the path is the straight line to the goal.
+    h = Harness(ros_context, executor)
+    paths = []
+    h.io.create_subscription(Path, '/footstep_plan/body_path', paths.append, RELIABLE_QOS)
+    assert spin_until(executor, lambda: h.node.pub_body_path.get_subscription_count() > 0, 5.0)
+    h.pose(_pose_T())
+    goal = PoseStamped()
+    goal.header.frame_id = 'map'
+    goal.pose.position.x = 0.7
+    h.pub_goal.publish(goal)
+    assert spin_until(executor, lambda: h.node.goal_xy is not None, 5.0)
+    hh = np.zeros((150, 150))
+    hh[105:125, 60:85] = 0.11                    # x 0.30..0.50, y -0.15..0.10
+    rock = _grid(hh)
+    plan = h.send_map(grid_to_msg(rock))
+    assert plan.status == FootstepPlan.STATUS_OK, plan.status_text
+    assert spin_until(executor, lambda: len(paths) > 0, 5.0)
+    got = np.array([[p.pose.position.x, p.pose.position.y] for p in paths[-1].poses])
+    want = fs.FootstepPlanner(ROBOT, fs.PlannerConfig())
+    assert want.set_map(rock) is None
+    want.plan(_pose_T(), np.array([0.7, 0.0]))
+    np.testing.assert_allclose(got, want.body_path.points, atol=1e-9)
+    assert paths[-1].header.frame_id == 'map' and got[:, 1].max() > 0.15   # round the left
+    assert all(p.pose.position.z == pytest.approx(0.0) for p in paths[-1].poses)
+    k = len(paths)
+    h.send_map(grid_to_msg(_grid(np.zeros((150, 150)), stamp=2.0)))
+    assert spin_until(executor, lambda: len(paths) > k, 5.0)
+    np.testing.assert_allclose([[p.pose.position.x, p.pose.position.y]
+                                for p in paths[-1].poses], [[0.0, 0.0], [0.7, 0.0]], atol=1e-9)
 
 
 def _stance_scene(ros_context, executor):
