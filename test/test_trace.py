@@ -102,7 +102,9 @@ def test_a_localised_rocks_walk_lands_the_feet_where_planned(tmp_path):
     # controller's dead reckoning, which drifts as the feet slip; localised, it is re-anchored
     # before each plan with the correction a perfect ICP would give (as the closed loop does
     # with its ICP), and the feet land where the plan put them. Measured (0.5 m of rocks-6cm,
-    # seed 13): mean landing error 3.4 mm unlocalised, 1.1 mm localised; p95 8.7, 2.9 mm.
+    # seed 13): mean landing error 2.7 mm unlocalised, 1.1 mm localised; p95 5.1, 2.8 mm
+    # (unlocalised 4.8 and 9.4 mm without the planner's heading cost of the twenty-eighth
+    # session, which keeps the stance from turning).
     from terrain_perception.bench.sim import _rocks_walk
     from terrain_perception.terrain import make_course
     course = make_course('rocks-6cm', 13, 0.005)
@@ -114,7 +116,8 @@ def test_a_localised_rocks_walk_lands_the_feet_where_planned(tmp_path):
     assert fixed['foot_err_p95_m'] < 0.005
     # The trace puts the controller's belief in the map (its T_map_odom), so localised its
     # stance feet are where the true ones are; unlocalised the drift shows (measured: p90
-    # of the loaded stance feet's x-y offset 3.0 mm localised, 7.5 mm unlocalised).
+    # of the loaded stance feet's x-y offset 3.1 mm localised, 4.7 mm unlocalised; 9.0 mm
+    # without the heading cost).
     off = {}
     for loc in (False, True):
         a = load_trace(tmp_path / f'{loc}.npz')
@@ -122,7 +125,7 @@ def test_a_localised_rocks_walk_lands_the_feet_where_planned(tmp_path):
         off[loc] = np.linalg.norm(a['feet'][..., :2] - a['believed_feet'][..., :2],
                                   axis=-1)[stance]
     p90 = {loc: float(np.percentile(o, 90)) for loc, o in off.items()}
-    assert p90[True] < 0.005 and p90[False] > 2.0 * p90[True], p90
+    assert p90[True] < 0.005 and p90[False] > 1.3 * p90[True], p90
 
 
 @pytest.mark.timeout(180)
