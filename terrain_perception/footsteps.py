@@ -540,6 +540,7 @@ class FootstepPlanner:
         self._belly_blocked = False
         self.body_path: Optional[BodyPath] = None      # the last plan's (body_path on)
         self._route: Optional[Tuple[np.ndarray, np.ndarray]] = None    # (start, goal)
+        self._path_cache: Optional[tuple] = None        # (key, BodyPath) of the last search
 
     @property
     def A(self) -> float:
@@ -567,7 +568,7 @@ class FootstepPlanner:
         self.grid, self.cost = grid, cost
         self._dev = None     # (i0, j0, Dev(h) of the cells from there): see _area_flat
         self.allowed = candidate_mask(grid, self.cfg) & np.isfinite(cost)
-        self._belly_top = None
+        self._belly_top = self._path_cache = None
         if self.cfg.belly_clearance_m >= 0:
             self._belly_top = top_field(grid, self._belly_spacing)
         if self.cfg.max_unevenness > 0:
@@ -789,11 +790,20 @@ class FootstepPlanner:
         d = aim - body_xy
         if np.hypot(*d) < 1e-6:
             return yaw
-        self.body_path = plan_body_path(
-            self.grid, self.robot, body_xy, aim, float(np.arctan2(d[1], d[0])),
-            BodyPathSettings(c.body_path_resolution_m, c.belly_clearance_m,
-                             c.body_path_headroom_m, c.body_path_weight),
-            top=self._belly_top, corridor=corridor)
+        settings = BodyPathSettings(c.body_path_resolution_m, c.belly_clearance_m,
+                                    c.body_path_headroom_m, c.body_path_weight)
+        # plan_checked plans from the same pose up to a dozen times: search once per map,
+        # pose and aim.
+        key = (id(self._belly_top), tuple(np.round(body_xy, 6)), tuple(np.round(aim, 6)),
+               settings, None if corridor is None else
+               (tuple(corridor[0]), tuple(corridor[1]), corridor[2]))
+        if self._path_cache is not None and self._path_cache[0] == key:
+            self.body_path = self._path_cache[1]
+        else:
+            self.body_path = plan_body_path(
+                self.grid, self.robot, body_xy, aim, float(np.arctan2(d[1], d[0])), settings,
+                top=self._belly_top, corridor=corridor)
+            self._path_cache = (key, self.body_path)
         p = self.body_path.lookahead(c.body_path_lookahead_m, aim) - body_xy
         if np.hypot(*p) < 1e-6:
             return yaw

@@ -168,3 +168,25 @@ def test_no_planned_body_pose_puts_the_belly_on_a_rock():
     assert off.set_map(g) is None
     p_off = off.plan(T, np.array([1.5, 0.0]), feet=feet)
     assert p_off.ok and _belly_gaps(g, p_off, feet).min() < cfg.belly_clearance_m
+
+
+def test_the_body_path_is_searched_once_per_map_pose_and_goal(monkeypatch):
+    # plan_checked plans up to a dozen times from one pose: one search; a new map searches
+    # again.
+    h, _, _ = _field(rock_h=0.11, rock_y=(-0.12, 0.06))
+    calls = []
+    real = fs.plan_body_path
+    monkeypatch.setattr(fs, 'plan_body_path', lambda *a, **k: calls.append(1) or real(*a, **k))
+    planner = fs.FootstepPlanner(ROBOT, fs.PlannerConfig())
+    assert planner.set_map(_grid(h)) is None
+    T = np.eye(4)
+    T[:3, 3] = [0.25, 0.0, ROBOT.standing_height_m]
+    feet = np.array(ROBOT.nominal_feet) + [0.25, 0.0, 0.0]
+    feet[:, 2] = 0.0
+    plan = planner.plan_checked(T, np.array([1.5, 0.0]), feet, lambda legs, pos: (0, 'no'))
+    assert not plan.ok and len(calls) == 1               # every first step refused: many plans
+    first = planner.body_path
+    assert planner.set_map(_grid(h)) is None
+    planner.plan(T, np.array([1.5, 0.0]), feet=feet)
+    assert len(calls) == 2
+    np.testing.assert_allclose(planner.body_path.points, first.points)
