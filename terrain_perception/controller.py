@@ -40,6 +40,7 @@ from scipy.interpolate import CubicSpline
 
 from terrain_perception import gait as gaitlib
 from terrain_perception import kinematics
+from terrain_perception.body_path import belly_samples
 from terrain_perception.config import param
 from terrain_perception.robot_model import LEG_NAMES, RobotModel
 from terrain_perception.transforms import invert, make_T, rot_z, transform_points
@@ -1210,10 +1211,8 @@ class WalkingController:
         c = self.config
         if c.belly_clearance_m < 0.0 or self.height is None:
             return -np.inf
-        length, width, thick = (float(v) for v in self.model.body_size_m)
-        u = np.linspace(-0.5 * length, 0.5 * length, max(int(np.ceil(length / 0.02)) + 1, 2))
-        v = np.linspace(-0.5 * width, 0.5 * width, max(int(np.ceil(width / 0.02)) + 1, 2))
-        U, V = (a.ravel() for a in np.meshgrid(u, v, indexing='ij'))
+        thick = float(self.model.body_size_m[2])
+        U, V = belly_samples(self.model)[0][:, :2].T
         cy, sy = np.cos(body[3]), np.sin(body[3])
         pts = np.stack([body[0] + cy * U - sy * V, body[1] + sy * U + cy * V,
                         np.zeros_like(U)], axis=-1)
