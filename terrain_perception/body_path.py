@@ -147,11 +147,10 @@ def plan_body_path(grid: GridMap, robot: RobotModel, start_xy: np.ndarray,
         [[0, 0], [1, 0], [-1, 0], [0, 1], [0, -1]], dtype=np.float64)
     feet = np.asarray(robot.nominal_feet)[:, None, :2] + ring[None]
     fxy = feet.reshape(-1, 2) @ R.T
-    h = grid[ELEVATION].astype(np.float64)
-    fz, f_in = _lookup(grid, h, nodes[:, None, :] + fxy[None])
+    fz, f_in = _lookup(grid, grid[ELEVATION], nodes[:, None, :] + fxy[None])
     # Per foot the lowest of its samples (the foot may end up in the gap between two rocks),
     # then the mean over the feet (the body follows the feet's plane); NaN if any is unknown.
-    fz = fz.reshape(len(nodes), 4, len(ring))
+    fz = fz.astype(np.float64).reshape(len(nodes), 4, len(ring))
     with np.errstate(invalid='ignore'):
         ground = np.min(fz, axis=2).mean(axis=1)
     underside = robot.standing_height_m - 0.5 * float(robot.body_size_m[2])
