@@ -136,41 +136,50 @@ def plan_body_path(grid: GridMap, robot: RobotModel, start_xy: np.ndarray,
     c, sn = np.cos(heading), np.sin(heading)
     R = np.array([[c, -sn], [sn, c]])
 
+    # Only positions the body may take need their headroom: with a corridor, the lattice
+    # positions within it (and the start); the rest are blocked whatever lies under them.
+    k_start = int(np.argmin(np.sum((nodes - start) ** 2, axis=1)))
+    outside = np.zeros(len(nodes), dtype=bool)
+    if corridor is not None:
+        a, b, half = (np.asarray(corridor[0], float), np.asarray(corridor[1], float),
+                      float(corridor[2]))
+        ab = b - a
+        t = np.clip((nodes - a) @ ab / max(float(ab @ ab), 1e-12), 0.0, 1.0)
+        outside = np.hypot(*(nodes - a - t[:, None] * ab).T) > half
+    live = ~outside
+    live[k_start] = True
+    live_nodes = nodes[live]
+
     belly, spacing = belly_samples(robot)
     if top is None:
         top = top_field(grid, spacing)
     bxy = belly[:, :2] @ R.T
-    tops, t_in = _lookup(grid, top, nodes[:, None, :] + bxy[None])
+    tops, t_in = _lookup(grid, top, live_nodes[:, None, :] + bxy[None])
     top_max = tops.max(axis=1)
     # Ground under the feet: five points around each nominal foot.
     ring = float(robot.foot_radius_m) * np.array(
         [[0, 0], [1, 0], [-1, 0], [0, 1], [0, -1]], dtype=np.float64)
     feet = np.asarray(robot.nominal_feet)[:, None, :2] + ring[None]
     fxy = feet.reshape(-1, 2) @ R.T
-    fz, f_in = _lookup(grid, grid[ELEVATION], nodes[:, None, :] + fxy[None])
+    fz, f_in = _lookup(grid, grid[ELEVATION], live_nodes[:, None, :] + fxy[None])
     # Per foot the lowest of its samples (the foot may end up in the gap between two rocks),
     # then the mean over the feet (the body follows the feet's plane); NaN if any is unknown.
-    fz = fz.astype(np.float64).reshape(len(nodes), 4, len(ring))
+    fz = fz.astype(np.float64).reshape(len(live_nodes), 4, len(ring))
     with np.errstate(invalid='ignore'):
         ground = np.min(fz, axis=2).mean(axis=1)
     underside = robot.standing_height_m - 0.5 * float(robot.body_size_m[2])
-    headroom = ground + underside - top_max          # NaN where no foot ground is known
-    off_map = ~(t_in.all(axis=1) & f_in.all(axis=1))
+    headroom = np.full(len(nodes), np.nan)
+    headroom[live] = ground + underside - top_max    # NaN where no foot ground is known
+    off_map = np.zeros(len(nodes), dtype=bool)
+    off_map[live] = ~(t_in.all(axis=1) & f_in.all(axis=1))
     headroom[off_map] = np.nan
-    rock = np.isfinite(headroom) & (headroom < s.clearance_m)
-    if corridor is not None:
-        a, b, half = (np.asarray(corridor[0], float), np.asarray(corridor[1], float),
-                      float(corridor[2]))
-        ab = b - a
-        t = np.clip((nodes - a) @ ab / max(float(ab @ ab), 1e-12), 0.0, 1.0)
-        rock |= np.hypot(*(nodes - a - t[:, None] * ab).T) > half
+    rock = (np.isfinite(headroom) & (headroom < s.clearance_m)) | outside
     blocked = rock | off_map
     short = np.clip((s.preferred_headroom_m - headroom) / max(s.preferred_headroom_m, 1e-9),
                     0.0, 1.0)
     cost = 1.0 + s.weight * np.where(np.isfinite(headroom), short, 0.0) \
         + s.unknown_cost * (~np.isfinite(headroom) & ~off_map)
 
-    k_start = int(np.argmin(np.sum((nodes - start) ** 2, axis=1)))
     blocked[k_start] = False
     idx = np.arange(len(nodes)).reshape(n[0], n[1])
     rows, cols, w = [], [], []
