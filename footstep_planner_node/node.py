@@ -250,11 +250,12 @@ class FootstepPlannerNode(Node):
         self.map_problem = self.planner.set_map(grid)
         if self.map_problem is not None:
             self.counters.bump('bad_map', self.map_problem.status_text)
-        else:
-            # Latched: late viewers get it, so publish regardless of current subscribers.
+        self.replan(stamp)
+        if self.map_problem is None:
+            # After the plan, which is what the controller waits for (capture-to-plan latency);
+            # latched: late viewers get it, so publish regardless of current subscribers.
             self.pub_cost.publish(cost_to_occupancy(grid, self.planner.cost,
                                                     self.node_cfg.cost_grid_max, stamp))
-        self.replan(stamp)
 
     def _now(self) -> float:
         return now_s(self)
