@@ -85,6 +85,30 @@ def test_the_body_path_goes_round_a_rock_too_tall_for_the_belly():
     assert 0.3 < end[0] < 0.6
 
 
+def test_the_corridor_bounds_the_path_and_nothing_outside_it_matters():
+    # An 11 cm block on the centre line, a 0.3 m corridor: the path goes round inside it. Rocks
+    # and unknown cells outside the corridor change nothing (the search looks only inside it);
+    # a corridor too narrow to pass the block stops the path before it.
+    h, X, Y = _field(rock_h=0.11)
+    corridor = (np.array([0.0, 0.0]), np.array([1.5, 0.0]), 0.3)
+    path = plan_body_path(_grid(h), ROBOT, [0.0, 0.0], [1.5, 0.0], 0.0, corridor=corridor)
+    dense = _dense(path.points)
+    assert path.reaches_goal
+    assert 0.12 + 0.05 < np.abs(dense[:, 1]).max() <= 0.3 + 1e-9
+    rng = np.random.default_rng(3)
+    outside = np.abs(Y) > 0.3 + 0.1
+    h2 = h.copy()
+    h2[outside] = rng.uniform(0.0, 0.15, int(outside.sum()))
+    h2[outside & (X > 0.9)] = np.nan
+    same = plan_body_path(_grid(h2), ROBOT, [0.0, 0.0], [1.5, 0.0], 0.0, corridor=corridor)
+    np.testing.assert_array_equal(same.points, path.points)
+    assert same.blocked == path.blocked and same.reaches_goal
+    narrow = plan_body_path(_grid(h), ROBOT, [0.0, 0.0], [1.5, 0.0], 0.0,
+                            corridor=(corridor[0], corridor[1], 0.1))
+    assert not narrow.reaches_goal
+    assert narrow.points[-2][0] < 0.6         # the last lattice point is before the block
+
+
 def test_the_body_path_rejects_non_finite_input():
     h, _, _ = _field(rock_h=0.0)
     with pytest.raises(ValueError, match='finite'):
