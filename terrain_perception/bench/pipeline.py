@@ -13,7 +13,11 @@ bag and captures:
   (``terrain_ros.env.node_env``);
 * ``numpy_ik``: the node env with ``TERRAIN_IK_NUMBA=0``, the numpy leg IK instead of the
   compiled kernel (the baseline of ``_ik_kernel``: the planner's dry run of the controller's
-  checks and the controller call it hundreds of times per plan).
+  checks and the controller call it hundreds of times per plan);
+* ``against`` (only with ``--against REV``): the node env running the code of git revision
+  ``REV`` of this repository (e.g. the commit before a speed-up), checked out into a temporary
+  worktree that is removed afterwards: a before/after of a code change on the same bag in the
+  same run. Its per-stage medians are printed beside the current tree's with the ratios.
 
 It prints both tables, then the per-stage medians side by side and the ratios baseline / node
 env of the ICP mapper's update, the contact patches and all CPU per capture. Without ``--bag``
@@ -26,7 +30,8 @@ JSON: ``variants`` (name -> ``threads``, ``stage_median_ms`` per stage, ``cpu_ms
 ``chain_cpu_ms_median_sum``, ``chain_cpu_ms_per_capture_median``), ``icp_cpu_ratio``,
 ``patches_cpu_ratio``, ``total_cpu_ratio``, ``chain_cpu_ratio`` (baseline / node env),
 ``chain_cpu_ms_median`` (node env: the sum of the chain's medians), ``bag``, ``captures``,
-``recorded_bag``.
+``recorded_bag``; with ``--against``: ``against`` (``rev``, ``commit``, the variant's figures)
+and ``against_ratio`` (stage -> the revision's median / the current tree's, and ``chain``).
 """
 
 from __future__ import annotations
@@ -34,6 +39,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import shutil
 import subprocess
 import sys
 import tempfile
@@ -44,6 +50,7 @@ from typing import Dict, Optional
 # import terrain_ros, test_pipeline_profile checks that the two lists agree).
 THREAD_VARS = ('OMP_NUM_THREADS', 'OPENBLAS_NUM_THREADS', 'MKL_NUM_THREADS')
 VARIANTS = ('default_pools', 'node_env', 'numpy_ik')
+REPO = Path(__file__).resolve().parents[2]
 VARIANT_TITLES = {'default_pools': 'baseline: the libraries\' default thread pools '
                                    '(OMP/OPENBLAS/MKL_NUM_THREADS unset)',
                   'node_env': 'node env: OMP/OPENBLAS/MKL_NUM_THREADS=1 (terrain-launch)',
@@ -59,6 +66,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help='rosbag2 directory of a terrain-demo run (default: record one)')
     p.add_argument('--captures', type=int, default=None,
                    help='captures counted per variant (default 60; --quick 15)')
+    p.add_argument('--against', metavar='REV', default=None,
+                   help='also profile the code of this git revision (a commit before a change) '
+                        'in a temporary worktree, with the node env, and print its per-stage '
+                        'CPU beside the current tree\'s')
     p.add_argument('--sim-time', type=float, default=25.0,
                    help='without --bag: simulated seconds of the recording run (default 25)')
     p.add_argument('--run-dir', type=Path, default=DEMO_RUN_DIR,
@@ -103,23 +114,54 @@ def record_bag(run_dir: Path, sim_time: float) -> Path:
     return bag
 
 
-def profile(bag: Path, captures: int, variant: str) -> dict:
-    """Run the profile tool in a subprocess with ``variant``'s environment; its JSON figures."""
+def profile(bag: Path, captures: int, variant: str, code: Optional[Path] = None,
+            title: Optional[str] = None) -> dict:
+    """Run the profile tool in a subprocess with ``variant``'s environment (and, with ``code``,
+    the package tree there instead of the installed one); its JSON figures."""
+    env = _env(variant)
+    if code is not None:
+        env['PYTHONPATH'] = os.pathsep.join([str(code)] + [p for p in (
+            env.get('PYTHONPATH') or '').split(os.pathsep) if p])
     with tempfile.TemporaryDirectory(prefix='bench-pipeline-') as tmp:
         out = Path(tmp) / 'profile.json'
-        cmd = [sys.executable, '-m', TOOL, str(bag), '--captures', str(captures),
-               '--json', str(out)]
-        proc = subprocess.run(cmd, capture_output=True, text=True, env=_env(variant),
-                              timeout=3600)
+        cmd = [sys.executable, '-m', TOOL, str(Path(bag).resolve()), '--captures',
+               str(captures), '--json', str(out)]
+        proc = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=3600,
+                              cwd=str(code) if code is not None else None)
         if proc.returncode != 0 or not out.is_file():
             lines = proc.stderr.strip().splitlines() or proc.stdout.strip().splitlines()
-            raise ValueError(f'the profile ({variant}) failed with exit code '
+            raise ValueError(f'the profile ({title or variant}) failed with exit code '
                              f'{proc.returncode}: {lines[-1] if lines else "no output"}')
         result = json.loads(out.read_text())
-    print(f'\n=== {VARIANT_TITLES[variant]}', flush=True)
+    print(f'\n=== {title or VARIANT_TITLES[variant]}', flush=True)
     print('\n'.join(ln for ln in proc.stdout.rstrip().splitlines()
                     if not ln.startswith('pipeline_profile: figures written')), flush=True)
     return result
+
+
+def _git(*args: str) -> str:
+    proc = subprocess.run(['git', '-C', str(REPO), *args], capture_output=True, text=True)
+    if proc.returncode != 0:
+        raise ValueError(f'git {" ".join(args)}: {proc.stderr.strip() or proc.stdout.strip()}')
+    return proc.stdout.strip()
+
+
+def profile_revision(bag: Path, captures: int, rev: str) -> dict:
+    """:func:`profile` (node env) of the code of git revision ``rev``, checked out into a
+    temporary worktree of this repository (removed afterwards)."""
+    commit = _git('rev-parse', '--verify', f'{rev}^{{commit}}')
+    tmp = Path(tempfile.mkdtemp(prefix='bench-pipeline-rev-'))
+    tree = tmp / 'tree'
+    try:
+        _git('worktree', 'add', '--detach', str(tree), commit)
+        r = profile(bag, captures, 'node_env', code=tree,
+                    title=f'node env, the code of {rev} ({commit[:10]}), same bag')
+    finally:
+        subprocess.run(['git', '-C', str(REPO), 'worktree', 'remove', '--force', str(tree)],
+                       capture_output=True)
+        shutil.rmtree(tmp, ignore_errors=True)
+    r['commit'] = commit
+    return r
 
 
 def _ratio(a, b) -> Optional[float]:
@@ -135,6 +177,8 @@ def run(args) -> dict:
     if not bag.exists():
         raise FileNotFoundError(f'bag {str(bag)!r} does not exist')
     res = {v: profile(bag, captures, v) for v in VARIANTS}
+    if args.against:
+        res['against'] = profile_revision(bag, captures, args.against)
     variants = {}
     for v, r in res.items():
         variants[v] = {
@@ -181,6 +225,23 @@ def run(args) -> dict:
     print(f'planner map callback (replan + dry run): numpy IK {k["stage_median_ms"]["plan_map"]}'
           f' ms, compiled IK {n["stage_median_ms"]["plan_map"]} ms -> {out["plan_map_ik_ratio"]}x;'
           f' chain {k["chain_cpu_ms_median_sum"]} -> {n["chain_cpu_ms_median_sum"]} ms')
+    if args.against:
+        a = variants.pop('against')
+        ratios = {st: _ratio(a['stage_median_ms'][st], n['stage_median_ms'][st])
+                  for st in STAGES}
+        ratios['chain'] = _ratio(a['chain_cpu_ms_median_sum'], n['chain_cpu_ms_median_sum'])
+        out['against'] = {'rev': args.against, 'commit': res['against']['commit'], **a}
+        out['against_ratio'] = ratios
+        print(f'\n=== per capture, {args.against} / the current tree (node env; CPU ms, medians)')
+        print(f'{"stage":22s} {args.against[:14]:>14s} {"current":>10s} {"ratio":>7s}')
+        rows = [(st, a['stage_median_ms'][st], n['stage_median_ms'][st]) for st in STAGES]
+        rows += [('chain, sum of medians', a['chain_cpu_ms_median_sum'],
+                  n['chain_cpu_ms_median_sum'])]
+        for name, x, y in rows:
+            r = _ratio(x, y)
+            print(f'{name:22s} {"-" if x is None else f"{x:.1f}":>14s} '
+                  f'{"-" if y is None else f"{y:.1f}":>10s} '
+                  f'{"-" if r is None else f"{r:.2f}":>7s}')
     print(f'ICP update CPU ratio (baseline / node env) {out["icp_cpu_ratio"]}, patches '
           f'{out["patches_cpu_ratio"]}, all CPU per capture {out["total_cpu_ratio"]}'
           + (f'; bag recorded by this run: {bag}' if recorded else f'; bag: {bag}'))
