@@ -587,6 +587,51 @@ def _robust_weights(r: np.ndarray, kernel: str, k: float) -> np.ndarray:
     return np.ones_like(r)
 
 
+def fake_information(d: np.ndarray, w: np.ndarray, L: float) -> np.ndarray:
+    """The normalised point-to-plane information (6x6, coordinates of
+    :func:`remove_degenerate_motion`) that model normals tilted by unit-variance noise in
+    map x and y would put into correspondences at lever arms ``d`` ``(N, 3)`` (point minus
+    the prior's origin) with weights ``w`` ``(N,)`` summing to 1: ``sum_i w_i sum_a j_a j_a^T``,
+    ``j_a = [(d_i x e_a) / L, e_a]``, a in {x, y}. Times the slope variance of the normals it
+    is what noise alone contributes: horizontal-ish normals that fix x, y and yaw on flat
+    ground, and (through the lever arm) a little roll and pitch, never z."""
+    F = np.zeros((6, 6))
+    for a in (0, 1):
+        e = np.zeros(3)
+        e[a] = 1.0
+        j = np.hstack([np.cross(d, e) / L, np.broadcast_to(e, d.shape)])
+        F += (j * w[:, None]).T @ j
+    return F
+
+
+def _observed_directions(H: np.ndarray, d: np.ndarray, w: np.ndarray, L: float,
+                         threshold: float, noise_gain: float, noise_var: float
+                         ) -> Tuple[np.ndarray, np.ndarray, int]:
+    """Basis ``(6, k)`` of the motion directions a fit constrains, H's eigenvalues
+    (ascending) and ``6 - k``. A direction needs an eigenvalue of ``H`` of at least
+    ``threshold`` and, when ``noise_gain * noise_var`` > 0, ``noise_gain`` times the
+    information noise of slope variance ``noise_var`` would fake there (the generalised
+    eigenproblem ``H v = lambda noise_var F v``, :func:`fake_information`)."""
+    eig, V = np.linalg.eigh(H)
+    good = eig >= threshold if threshold > 0 else np.ones(6, bool)
+    Vg = V[:, good]
+    if noise_gain > 0 and noise_var > 0 and Vg.shape[1]:
+        # inside the geometric subspace: signal-to-noise of each direction
+        F = noise_var * fake_information(d, w, L)
+        Hg, Fg = Vg.T @ H @ Vg, Vg.T @ F @ Vg
+        Fg = Fg + 1e-12 * max(np.trace(Hg), 1e-12) * np.eye(len(Fg))
+        from scipy.linalg import eigh as _geigh
+        snr, U = _geigh(Hg, Fg)
+        bad = U[:, snr < noise_gain]
+        if bad.shape[1]:
+            # keep what is orthogonal to every direction that noise could explain (the
+            # generalised eigenvectors are not orthogonal: taking the good ones' span would
+            # keep some of the bad ones in it)
+            q = np.linalg.svd(bad, full_matrices=True)[0]
+            Vg = Vg @ q[:, bad.shape[1]:]
+    return Vg, eig, 6 - Vg.shape[1]
+
+
 def constrained_icp(src: np.ndarray, model: np.ndarray, model_normals: np.ndarray,
                     tree: cKDTree, T_prior: np.ndarray, config: 'MapperConfig',
                     depth_w: Optional[np.ndarray] = None) -> IcpResult:
@@ -644,44 +689,56 @@ def constrained_icp(src: np.ndarray, model: np.ndarray, model_normals: np.ndarra
         r = np.einsum('ij,ij->i', p[si] - model[mi], n)
         return p, si, mi, n, r
 
-    for it in range(1, c.max_iterations + 1):
+    total = 0
+    noise_var = 0.0
+    # phase 0 converges with the geometric threshold alone; phase 1 then also needs each kept
+    # direction to carry degeneracy_noise_gain x the information that normals tilted by noise
+    # would fake (fake_information), the noise level taken once from phase 0's converged
+    # residual (from the prior's residual, 2 cm off, every direction would look unobserved;
+    # updated per iteration, a reset along one direction raises the residual, which resets
+    # the next)
+    for phase in (0, 1):
+        for it in range(1, c.max_iterations + 1):
+            total += 1
+            p, si, mi, n, r = match(T)
+            if len(si) < 6:
+                break
+            # 1. the directions the geometry constrains (about the prior's origin, scaled by L)
+            d = p[si] - centre
+            J = np.hstack([np.cross(d, n) / L, n])
+            w_info = dw[si] / dw[si].sum()
+            H = (J * w_info[:, None]).T @ J
+            Vg, eig, n_deg = _observed_directions(H, d, w_info, L, c.degeneracy_threshold,
+                                                  c.degeneracy_noise_gain, noise_var)
+            # 2. back to the prior along the others, then a Gauss-Newton step inside these
+            x_proj = Vg @ np.linalg.lstsq(Vg, x, rcond=None)[0] if Vg.shape[1] else 0.0 * x
+            r_lin = r + J @ (x_proj - x)
+            w = _robust_weights(r_lin, c.robust_kernel, c.kernel_scale_m) * dw[si]
+            if Vg.shape[1] == 0 or not np.any(w > 0):
+                x = x_proj
+                T = _from_motion(x, T_prior, L)
+                break
+            Jg = J @ Vg
+            A = (Jg * w[:, None]).T @ Jg
+            b = -(Jg * w[:, None]).T @ r_lin
+            try:
+                y = np.linalg.solve(A, b)
+            except np.linalg.LinAlgError:
+                y = np.linalg.lstsq(A, b, rcond=None)[0]
+            step = Vg @ y
+            moved = float(np.linalg.norm(x_proj - x))
+            x = x_proj + step
+            T = _from_motion(x, T_prior, L)
+            if np.linalg.norm(step) < 1e-5 and moved < 1e-5:
+                break
+        if c.degeneracy_noise_gain <= 0 or phase == 1:
+            break
         p, si, mi, n, r = match(T)
         if len(si) < 6:
             break
-        rmse = float(np.sqrt(np.mean(r * r)))
-        # 1. the directions the geometry constrains (about the prior's origin, scaled by L)
-        d = p[si] - centre
-        J = np.hstack([np.cross(d, n) / L, n])
-        w_info = dw[si] / dw[si].sum()
-        H = (J * w_info[:, None]).T @ J
-        eig, V = np.linalg.eigh(H)
-        limit = c.degeneracy_threshold
-        if c.degeneracy_noise_gain > 0:
-            limit = max(limit, c.degeneracy_noise_gain * (rmse / c.normal_radius_m) ** 2)
-        good = eig >= limit if limit > 0 else np.ones(6, bool)
-        n_deg = int((~good).sum())
-        Vg = V[:, good]
-        # 2. back to the prior along the others, then a Gauss-Newton step inside these
-        x_proj = Vg @ (Vg.T @ x)
-        r_lin = r + J @ (x_proj - x)
-        w = _robust_weights(r_lin, c.robust_kernel, c.kernel_scale_m) * dw[si]
-        if Vg.shape[1] == 0 or not np.any(w > 0):
-            x = x_proj
-            T = _from_motion(x, T_prior, L)
-            break
-        Jg = J @ Vg
-        A = (Jg * w[:, None]).T @ Jg
-        b = -(Jg * w[:, None]).T @ r_lin
-        try:
-            y = np.linalg.solve(A, b)
-        except np.linalg.LinAlgError:
-            y = np.linalg.lstsq(A, b, rcond=None)[0]
-        step = Vg @ y
-        x = x_proj + step
-        T = _from_motion(x, T_prior, L)
-        if (np.linalg.norm(step[3:]) < 1e-6 and np.linalg.norm(step[:3]) < 1e-6
-                and np.allclose(x_proj, x - step, atol=1e-9)):
-            break
+        noise_var = float(np.mean(r * r)) / c.normal_radius_m ** 2
+    limit = max(c.degeneracy_threshold, c.degeneracy_noise_gain * noise_var)
+    it = total
     p, si, mi, n, r = match(T)
     corr = np.stack([si, mi], axis=1) if len(si) else np.zeros((0, 2), np.int64)
     rmse = float(np.sqrt(np.mean(r * r))) if len(si) else float('inf')
