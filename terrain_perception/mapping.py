@@ -33,6 +33,7 @@ from typing import Deque, Dict, Optional, Tuple
 import numpy as np
 import open3d as o3d
 from scipy import ndimage
+from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation, Slerp
 
 from terrain_perception.compiled import load_compiled
@@ -117,6 +118,13 @@ class MapperConfig:
     normal_max_nn: int = param(20, 'max neighbours for a PCA model normal', 3, 200)
     icp_method: str = param('point_to_plane', 'ICP error metric (point_to_point is kept for '
                             'comparison only)', choices=('point_to_plane', 'point_to_point'))
+    icp_solver: str = param('constrained', 'point-to-plane solver: constrained = our '
+                            'Gauss-Newton ICP that keeps the prior along the directions the '
+                            'geometry does not constrain in every iteration (correspondences, '
+                            'fitness and RMSE are those of the pose it returns); open3d = '
+                            'Open3D\'s ICP to convergence, those directions reset to the prior '
+                            'afterwards (its correspondences then belong to a pose it slid to)',
+                            choices=('constrained', 'open3d'))
     max_correspondence_m: float = param(0.04, 'ICP correspondence distance [m]', 0.001, 1.0)
     max_iterations: int = param(30, 'ICP iterations', 1, 1000)
     relative_fitness: float = param(1e-7, 'ICP stops when fitness changes less than this',
@@ -541,6 +549,207 @@ def remove_degenerate_motion(T_icp: np.ndarray, T_prior: np.ndarray, points: np.
     Vg = V[:, good]
     x = _motion(T_icp, T_prior, L)
     return _from_motion(Vg @ (Vg.T @ x), T_prior, L), w, int((~good).sum())
+
+
+# constrained_icp stops when a step (and the reset to the prior before it) moves the pose less
+# than this in the normalised coordinates: 0.1 mm, or 0.1 mrad at the cloud's RMS lever arm
+# (stereo noise is millimetres; with 1e-5 noisy stereo fits took 35 iterations in the median,
+# the correspondences trading places, for the same pose to 0.1 mm)
+_STEP_TOL = 1e-4
+
+
+@dataclass
+class IcpResult:
+    """What :func:`constrained_icp` found: the pose, and the fit at that pose."""
+
+    T: np.ndarray                 # 4x4 map <- camera
+    correspondences: np.ndarray   # (K, 2) int: source row, model row (at T)
+    fitness: float                # K / source points
+    rmse_m: float                 # point-to-plane RMSE over the correspondences [m]
+    eigenvalues: np.ndarray       # (6,) ascending, normalised information (last iteration)
+    n_degenerate: int             # directions kept at the prior
+    information_limit: float      # the eigenvalue a direction needed
+    iterations: int
+
+
+def _tukey_weights(r: np.ndarray, k: float) -> np.ndarray:
+    """Open3D's TukeyLoss weight ``(1 - (r / k)^2)^2`` inside ``|r| <= k``, 0 outside."""
+    u = np.clip(1.0 - (r / k) ** 2, 0.0, None)
+    return u * u
+
+
+def _robust_weights(r: np.ndarray, kernel: str, k: float) -> np.ndarray:
+    """IRLS weights of Open3D's robust kernels (``_kernel``) for residuals ``r`` [m]."""
+    a = np.abs(r)
+    if kernel == 'tukey':
+        return _tukey_weights(r, k)
+    if kernel == 'huber':
+        return np.where(a <= k, 1.0, k / np.maximum(a, 1e-300))
+    if kernel == 'cauchy':
+        return 1.0 / (1.0 + (r / k) ** 2)
+    if kernel == 'gm':
+        return k / (k + r * r) ** 2
+    if kernel == 'l1':
+        return 1.0 / np.maximum(a, 1e-12)
+    return np.ones_like(r)
+
+
+def fake_information(d: np.ndarray, w: np.ndarray, L: float) -> np.ndarray:
+    """The normalised point-to-plane information (6x6, coordinates of
+    :func:`remove_degenerate_motion`) that model normals tilted by unit-variance noise in
+    map x and y would put into correspondences at lever arms ``d`` ``(N, 3)`` (point minus
+    the prior's origin) with weights ``w`` ``(N,)`` summing to 1: ``sum_i w_i sum_a j_a j_a^T``,
+    ``j_a = [(d_i x e_a) / L, e_a]``, a in {x, y}. Times the slope variance of the normals it
+    is what noise alone contributes: horizontal-ish normals that fix x, y and yaw on flat
+    ground, and (through the lever arm) a little roll and pitch, never z."""
+    F = np.zeros((6, 6))
+    for a in (0, 1):
+        e = np.zeros(3)
+        e[a] = 1.0
+        j = np.hstack([np.cross(d, e) / L, np.broadcast_to(e, d.shape)])
+        F += (j * w[:, None]).T @ j
+    return F
+
+
+def _observed_directions(H: np.ndarray, d: np.ndarray, w: np.ndarray, L: float,
+                         threshold: float, noise_gain: float, noise_var: float
+                         ) -> Tuple[np.ndarray, np.ndarray, int]:
+    """Basis ``(6, k)`` of the motion directions a fit constrains, H's eigenvalues
+    (ascending) and ``6 - k``. A direction needs an eigenvalue of ``H`` of at least
+    ``threshold`` and, when ``noise_gain * noise_var`` > 0, ``noise_gain`` times the
+    information noise of slope variance ``noise_var`` would fake there (the generalised
+    eigenproblem ``H v = lambda noise_var F v``, :func:`fake_information`)."""
+    eig, V = np.linalg.eigh(H)
+    good = eig >= threshold if threshold > 0 else np.ones(6, bool)
+    Vg = V[:, good]
+    if noise_gain > 0 and noise_var > 0 and Vg.shape[1]:
+        # inside the geometric subspace: signal-to-noise of each direction
+        F = noise_var * fake_information(d, w, L)
+        Hg, Fg = Vg.T @ H @ Vg, Vg.T @ F @ Vg
+        Fg = Fg + 1e-12 * max(np.trace(Hg), 1e-12) * np.eye(len(Fg))
+        from scipy.linalg import eigh as _geigh
+        snr, U = _geigh(Hg, Fg)
+        bad = U[:, snr < noise_gain]
+        if bad.shape[1]:
+            # keep what is orthogonal to every direction that noise could explain (the
+            # generalised eigenvectors are not orthogonal: taking the good ones' span would
+            # keep some of the bad ones in it)
+            q = np.linalg.svd(bad, full_matrices=True)[0]
+            Vg = Vg @ q[:, bad.shape[1]:]
+    return Vg, eig, 6 - Vg.shape[1]
+
+
+def constrained_icp(src: np.ndarray, model: np.ndarray, model_normals: np.ndarray,
+                    tree: cKDTree, T_prior: np.ndarray, config: 'MapperConfig',
+                    depth_w: Optional[np.ndarray] = None) -> IcpResult:
+    """Point-to-plane ICP that keeps the prior along the directions the geometry does not
+    constrain, in every iteration.
+
+    Each iteration takes the nearest model point within ``max_correspondence_m`` of every
+    source point, the point-to-plane residuals ``r_i = n_i . (T s_i - q_i)`` and their robust
+    weights (``robust_kernel``), then:
+
+    1. the normalised information ``H`` of the correspondences (:func:`_information`, about
+       the prior's origin, depth weights) and its eigenvectors; a direction counts when its
+       eigenvalue reaches ``max(degeneracy_threshold, degeneracy_noise_gain (rmse /
+       normal_radius_m)^2)`` (what height noise of the residual's size fakes through the model
+       normals), as in :func:`remove_degenerate_motion`;
+    2. the pose's offset from the prior is projected onto those directions (the others return
+       to the prior) and one Gauss-Newton step of the robust point-to-plane cost is taken
+       inside them.
+
+    Open3D's ICP instead converges with all six directions free and the unconstrained ones
+    are reset afterwards; on a view of mostly flat ground it slides along them by centimetres,
+    and the fit it reports (and the correspondences the residual guard used) belongs to that
+    slid pose: among box-shaped stones a slide puts the stones' sides on the wrong faces, and
+    the reset pose is then rejected for an RMSE it does not have (stones-15cm, FROG-I, depth
+    clouds: 11 rejections in a row at the stones' far edge, then lost).
+
+    Args:
+        src: ``(N, 3)`` source points, camera frame [m]; model, model_normals: ``(M, 3)`` map
+            frame, with ``tree`` a cKDTree of ``model``.
+        T_prior: 4x4 ``T_map_camera`` prior (the start and the anchor of the kept directions).
+        depth_w: ``(N,)`` per-point depth weights (:func:`depth_weights`) or None.
+    """
+    c = config
+    n_src = len(src)
+    T_prior = np.asarray(T_prior, dtype=np.float64)
+    centre = T_prior[:3, 3]
+    p_prior = transform_points(T_prior, src)
+    d0 = p_prior - centre
+    L = float(np.sqrt(np.mean(np.sum(d0 * d0, axis=1)))) or 1.0
+    x = np.zeros(6)
+    T = T_prior.copy()
+    eig = np.full(6, np.nan)
+    limit = float('nan')
+    n_deg = 0
+    it = 0
+    dw = np.ones(n_src) if depth_w is None else np.asarray(depth_w, dtype=np.float64)
+
+    def match(T_cur):
+        p = transform_points(T_cur, src)
+        dist, idx = tree.query(p, k=1, distance_upper_bound=c.max_correspondence_m)
+        ok = np.isfinite(dist)
+        si = np.flatnonzero(ok)
+        mi = idx[ok]
+        n = model_normals[mi]
+        r = np.einsum('ij,ij->i', p[si] - model[mi], n)
+        return p, si, mi, n, r
+
+    total = 0
+    noise_var = 0.0
+    # phase 0 converges with the geometric threshold alone; phase 1 then also needs each kept
+    # direction to carry degeneracy_noise_gain x the information that normals tilted by noise
+    # would fake (fake_information), the noise level taken once from phase 0's converged
+    # residual (from the prior's residual, 2 cm off, every direction would look unobserved;
+    # updated per iteration, a reset along one direction raises the residual, which resets
+    # the next)
+    for phase in (0, 1):
+        for it in range(1, c.max_iterations + 1):
+            total += 1
+            p, si, mi, n, r = match(T)
+            if len(si) < 6:
+                break
+            # 1. the directions the geometry constrains (about the prior's origin, scaled by L)
+            d = p[si] - centre
+            J = np.hstack([np.cross(d, n) / L, n])
+            w_info = dw[si] / dw[si].sum()
+            H = (J * w_info[:, None]).T @ J
+            Vg, eig, n_deg = _observed_directions(H, d, w_info, L, c.degeneracy_threshold,
+                                                  c.degeneracy_noise_gain, noise_var)
+            # 2. back to the prior along the others, then a Gauss-Newton step inside these
+            x_proj = Vg @ np.linalg.lstsq(Vg, x, rcond=None)[0] if Vg.shape[1] else 0.0 * x
+            r_lin = r + J @ (x_proj - x)
+            w = _robust_weights(r_lin, c.robust_kernel, c.kernel_scale_m) * dw[si]
+            if Vg.shape[1] == 0 or not np.any(w > 0):
+                x = x_proj
+                T = _from_motion(x, T_prior, L)
+                break
+            Jg = J @ Vg
+            A = (Jg * w[:, None]).T @ Jg
+            b = -(Jg * w[:, None]).T @ r_lin
+            try:
+                y = np.linalg.solve(A, b)
+            except np.linalg.LinAlgError:
+                y = np.linalg.lstsq(A, b, rcond=None)[0]
+            step = Vg @ y
+            moved = float(np.linalg.norm(x_proj - x))
+            x = x_proj + step
+            T = _from_motion(x, T_prior, L)
+            if np.linalg.norm(step) < _STEP_TOL and moved < _STEP_TOL:
+                break
+        if c.degeneracy_noise_gain <= 0 or phase == 1:
+            break
+        p, si, mi, n, r = match(T)
+        if len(si) < 6:
+            break
+        noise_var = float(np.mean(r * r)) / c.normal_radius_m ** 2
+    limit = max(c.degeneracy_threshold, c.degeneracy_noise_gain * noise_var)
+    it = total
+    p, si, mi, n, r = match(T)
+    corr = np.stack([si, mi], axis=1) if len(si) else np.zeros((0, 2), np.int64)
+    rmse = float(np.sqrt(np.mean(r * r))) if len(si) else float('inf')
+    return IcpResult(T, corr, len(si) / max(n_src, 1), rmse, eig, n_deg, limit, it)
 
 
 def height_map_normals(h: np.ndarray, origin_xy: np.ndarray, resolution_m: float,
@@ -988,6 +1197,7 @@ class IcpMapper:
                                   config.cell_outlier_gate_m)
         self._fine_anchored = False
         self._model = o3d.geometry.PointCloud()
+        self._tree: Optional[cKDTree] = None      # of the model's points (constrained ICP)
         self._poses: Deque[Tuple[float, np.ndarray]] = collections.deque(
             maxlen=config.max_capture_poses)
         self._last_stamp = -np.inf
@@ -1162,6 +1372,7 @@ class IcpMapper:
         n_model = len(self._model.points)
         if self._rejections_in_a_row >= c.max_consecutive_rejections:
             self._model = o3d.geometry.PointCloud()
+            self._tree = None
             self._recent_rmse.clear()
             self._rejections_in_a_row = 0
             self.counters['model_restarted'] += 1
@@ -1174,34 +1385,57 @@ class IcpMapper:
                                 self.T_map_odom.copy(), n_source=len(src_camera))
         src = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(src_camera))
         src = src.voxel_down_sample(c.coarse_voxel_m)
-        crit = _REG.ICPConvergenceCriteria(c.relative_fitness, c.relative_rmse,
-                                           c.max_iterations)
-        reg = _REG.registration_icp(src, self._model, c.max_correspondence_m, T_cam_prior,
-                                    self._estimation, crit)
-        T_cam = np.asarray(reg.transformation).copy()
-        # Open3D's inlier_rmse is the point-to-point distance; the guard wants the residual
-        # of the metric being minimised, so recompute point-to-plane over the correspondences
-        corr = np.asarray(reg.correspondence_set)
-        n_degenerate = 0
-        min_info = info_limit = float('nan')
         blend = imu_prior and c.icp_yaw_gain < 1.0
         degeneracy = c.degeneracy_threshold > 0 or c.degeneracy_noise_gain > 0
-        if len(corr) >= 6 and (blend or degeneracy):
-            src_pts = np.asarray(src.points)[corr[:, 0]]
-            normals = np.asarray(self._model.normals)[corr[:, 1]]
-            weights = depth_weights(src_pts[:, 2], self.focal_baseline_px_m,
-                                    c.disparity_sigma_px, c.depth_sigma_floor_m)
-            if blend:
+        n_degenerate = 0
+        min_info = info_limit = float('nan')
+        if c.icp_solver == 'constrained' and c.icp_method == 'point_to_plane':
+            src_np = np.asarray(src.points)
+            model_pts = np.asarray(self._model.points)
+            model_nrm = np.asarray(self._model.normals)
+            if self._tree is None:
+                self._tree = cKDTree(model_pts)
+            res = constrained_icp(src_np, model_pts, model_nrm, self._tree, T_cam_prior, c,
+                                  depth_weights(src_np[:, 2], self.focal_baseline_px_m,
+                                                c.disparity_sigma_px, c.depth_sigma_floor_m))
+            T_cam, corr, fitness = res.T, res.correspondences, res.fitness
+            if degeneracy:
+                n_degenerate = res.n_degenerate
+                min_info, info_limit = float(res.eigenvalues[0]), res.information_limit
+            if blend and len(corr) >= 6:
+                src_pts = src_np[corr[:, 0]]
                 T_cam = blend_yaw(T_cam, T_cam_prior, transform_points(T_cam, src_pts),
-                                  normals, c.icp_yaw_gain, weights)
-        if len(corr) >= 6 and degeneracy:
-            # information below what noise alone puts into the normals is not geometry
-            noise_slope = self._plane_rmse(src, T_cam, corr) / c.normal_radius_m
-            info_limit = max(c.degeneracy_threshold, c.degeneracy_noise_gain * noise_slope ** 2)
-            T_cam, eig, n_degenerate = remove_degenerate_motion(
-                T_cam, T_cam_prior, transform_points(T_cam, src_pts), normals, info_limit,
-                weights)
-            min_info = float(eig[0])
+                                  model_nrm[corr[:, 1]], c.icp_yaw_gain,
+                                  depth_weights(src_pts[:, 2], self.focal_baseline_px_m,
+                                                c.disparity_sigma_px, c.depth_sigma_floor_m))
+        else:
+            crit = _REG.ICPConvergenceCriteria(c.relative_fitness, c.relative_rmse,
+                                               c.max_iterations)
+            reg = _REG.registration_icp(src, self._model, c.max_correspondence_m, T_cam_prior,
+                                        self._estimation, crit)
+            T_cam = np.asarray(reg.transformation).copy()
+            fitness = float(reg.fitness)
+            # Open3D's inlier_rmse is the point-to-point distance; the guard wants the residual
+            # of the metric being minimised, so recompute point-to-plane over the
+            # correspondences
+            corr = np.asarray(reg.correspondence_set)
+            if len(corr) >= 6 and (blend or degeneracy):
+                src_pts = np.asarray(src.points)[corr[:, 0]]
+                normals = np.asarray(self._model.normals)[corr[:, 1]]
+                weights = depth_weights(src_pts[:, 2], self.focal_baseline_px_m,
+                                        c.disparity_sigma_px, c.depth_sigma_floor_m)
+                if blend:
+                    T_cam = blend_yaw(T_cam, T_cam_prior, transform_points(T_cam, src_pts),
+                                      normals, c.icp_yaw_gain, weights)
+            if len(corr) >= 6 and degeneracy:
+                # information below what noise alone puts into the normals is not geometry
+                noise_slope = self._plane_rmse(src, T_cam, corr) / c.normal_radius_m
+                info_limit = max(c.degeneracy_threshold,
+                                 c.degeneracy_noise_gain * noise_slope ** 2)
+                T_cam, eig, n_degenerate = remove_degenerate_motion(
+                    T_cam, T_cam_prior, transform_points(T_cam, src_pts), normals, info_limit,
+                    weights)
+                min_info = float(eig[0])
         rmse = self._plane_rmse(src, T_cam, corr)
         T_base = T_cam @ invert(self.T_base_camera)
         corr_m = float(np.linalg.norm(T_base[:3, 3] - T_prior[:3, 3]))
@@ -1210,8 +1444,8 @@ class IcpMapper:
         allowed_m = c.max_correction_floor_m + c.max_correction_per_m * walked
         allowed_rad = np.radians(c.max_rotation_floor_deg + c.max_rotation_per_m_deg * walked)
         reason = ''
-        if reg.fitness < c.min_fitness:
-            reason = f'fitness {reg.fitness:.2f} < {c.min_fitness:.2f}'
+        if fitness < c.min_fitness:
+            reason = f'fitness {fitness:.2f} < {c.min_fitness:.2f}'
             self.counters['rejected_fitness'] += 1
         elif rmse > self.rmse_limit():
             reason = (f'point-to-plane rmse {rmse * 1e3:.1f} mm > '
@@ -1231,7 +1465,7 @@ class IcpMapper:
                 reason = f'tilt {tilt:.1f} deg away from the roll/pitch prior'
                 self.counters['rejected_level'] += 1
         upd = MapperUpdate(not reason, False, reason, T_base, T_cam, T_prior,
-                           self.T_map_odom.copy(), float(reg.fitness), rmse,
+                           self.T_map_odom.copy(), float(fitness), rmse,
                            corr_m, float(np.degrees(corr_rad)), len(src.points), n_model,
                            n_degenerate, min_info, info_limit)
         if reason:
@@ -1321,6 +1555,7 @@ class IcpMapper:
         nrm /= np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-12)
         model.normals = o3d.utility.Vector3dVector(nrm)
         self._model = model
+        self._tree = None
         self._crop_model(T_map_base[:3, 3])
         self._poses.append((float(stamp_s), T_map_camera.copy()))
         self._last_stamp = max(self._last_stamp, float(stamp_s))

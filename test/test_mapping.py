@@ -148,8 +148,10 @@ def test_misfit_alignments_rejected_by_fitness_and_by_residual(terrain):
     u = m.update(cloud_at(scene, T1), prior, 1.0)
     assert pose_error(u.T_map_base, T1)[0] > 0.05 and not u.accepted
     assert m.counters['rejected_fitness'] == 1, u.reason
-    # after a few good alignments, a misfit with a 10x larger residual is refused
-    m = first_mapper(scene, loose)
+    # after a few good alignments, a misfit with a 10x larger residual is refused (noise floor
+    # off: with it the constrained solver leaves this misfit at the prior, 25 deg off, where
+    # the fitness guard refuses it instead)
+    m = first_mapper(scene, dataclasses.replace(loose, degeneracy_noise_gain=0.0))
     for k, dx in enumerate((0.01, 0.02, 0.03)):
         T = make_T(np.eye(3), [dx, 0.0, 0.0]) @ T0
         assert m.update(cloud_at(scene, T), T, 1.0 + k).accepted
