@@ -11,9 +11,12 @@ robot profile's camera at ``T_base_camera``:
 
 Dead reckoning integrates the true body increments with a stride-length error (default +5 %)
 and a yaw drift (default 2 deg per metre walked). Methods compared on the same captures:
-dead reckoning alone; our mapper (Open3D point-to-plane ICP, Tukey kernel, guards); the same
-mapper with Open3D point-to-point ICP; KISS-ICP (pip ``kiss-icp``, seeded with the dead-reckoning
-increment as its motion prediction) when installed.
+dead reckoning alone; our mapper (point-to-plane ICP with the configured ``icp_solver``, by
+default ``constrained``: the prior kept along unobserved directions in every iteration; Tukey
+kernel, guards); the same mapper with ``icp_solver: open3d`` (Open3D's ICP, unobserved
+directions reset afterwards: the default until the twenty-ninth session), on the depth and the
+stereo clouds; the same mapper with Open3D point-to-point ICP; KISS-ICP (pip ``kiss-icp``,
+seeded with the dead-reckoning increment as its motion prediction) when installed.
 
 Timing is wall-clock on this machine with every library's default threading; ``icp_ms`` is the
 alignment step (ICP + guards), ``update_ms`` the whole capture (validation, ICP, fusion into both
@@ -386,7 +389,8 @@ def run(args: argparse.Namespace) -> dict:
     rm_depth = map_rmse(ours['grid'], course)
     rm_true = map_rmse(map_at_true_poses(config, T_bc, clouds, T_true, stamps), course)
     results['dead_reckoning'] = {'errors': e_dr}
-    results['o3d_point_to_plane'] = {
+    ours_name = f'ours: {config.icp_solver} p2plane'
+    results['ours_point_to_plane'] = {
         'errors': e_ours, 'icp_ms_median': float(np.median(ours['icp_ms'])),
         'update_ms_mean': float(np.mean(ours['update_ms'])), 'counters': ours['counters'],
         'map': rm_depth}
@@ -396,8 +400,20 @@ def run(args: argparse.Namespace) -> dict:
     print('\nDepth-buffer clouds')
     print(header)
     print(_row('dead reckoning', e_dr, None))
-    print(_row('ours: o3d point-to-plane', e_ours, ours,
+    print(_row(ours_name, e_ours, ours,
                f'accepted {ours["counters"].get("accepted", 0)}/{len(clouds) - 1}'))
+    other = 'open3d' if config.icp_solver != 'open3d' else 'constrained'
+    other_name = f'{other} solver p2plane'
+    if not args.no_alternatives:
+        alt = run_mapper(dataclasses.replace(config, icp_solver=other), T_bc, clouds, T_dr,
+                         stamps)
+        e_alt = pose_errors(alt['poses'], T_true)
+        results[f'{other}_solver'] = {
+            'errors': e_alt, 'icp_ms_median': float(np.median(alt['icp_ms'])),
+            'icp_cpu_ms_median': float(np.median(alt['icp_cpu_ms'])),
+            'counters': alt['counters'], 'map': map_rmse(alt['grid'], course)}
+        print(_row(other_name, e_alt, alt,
+                   f'accepted {alt["counters"].get("accepted", 0)}/{len(clouds) - 1}'))
 
     kiss_version = kiss_available()
     if not args.no_alternatives:
@@ -455,8 +471,20 @@ def run(args: argparse.Namespace) -> dict:
                                  'directions_kept_at_prior': int(np.sum(st['n_degenerate']))}
             print(f'\nStereo-node clouds (max range {args.stereo_max_range:.2f} m)')
             print(header)
-            print(_row('ours: o3d point-to-plane', e_st, st,
+            print(_row(ours_name, e_st, st,
                        f'accepted {st["counters"].get("accepted", 0)}/{len(clouds) - 1}'))
+            if not args.no_alternatives:
+                alt = run_mapper(dataclasses.replace(st_cfg, icp_solver=other), T_bc, sclouds,
+                                 T_dr, stamps, fb)
+                e_alt = pose_errors(alt['poses'], T_true)
+                rm_alt = map_rmse(alt['grid'], course)
+                results['stereo'][f'{other}_solver'] = {
+                    'errors': e_alt, 'map': rm_alt, 'counters': alt['counters'],
+                    'icp_cpu_ms_median': float(np.median(alt['icp_cpu_ms']))}
+                print(_row(other_name, e_alt, alt,
+                           f'accepted {alt["counters"].get("accepted", 0)}/{len(clouds) - 1}'))
+                print(f'fine map height RMSE (stereo), {other} solver: '
+                      f'{rm_alt["rmse_m"] * 1e3:.2f} mm over {rm_alt["cells"]} cells')
             print(f'fine map height RMSE (stereo): {rmse_stereo * 1e3:.2f} mm over '
                   f'{rm_st["cells"]} cells; from true poses: '
                   f'{rm_st_true["rmse_m"] * 1e3:.2f} mm (the stereo clouds\' own error)')
@@ -492,6 +520,17 @@ def run(args: argparse.Namespace) -> dict:
             'final_m', float('nan')),
         'yaw_err_icp_stereo_deg': results.get('stereo', {}).get('errors', {}).get(
             'final_yaw_deg', float('nan')),
+        'icp_solver': config.icp_solver,
+        # the other solver on the same captures (None with --no-alternatives)
+        'final_err_icp_other_solver_m': results.get(f'{other}_solver', {}).get(
+            'errors', {}).get('final_m'),
+        'final_err_icp_stereo_other_solver_m': results.get('stereo', {}).get(
+            f'{other}_solver', {}).get('errors', {}).get('final_m'),
+        'rms_err_icp_stereo_m': results.get('stereo', {}).get('errors', {}).get('rms_m'),
+        'rms_err_icp_stereo_other_solver_m': results.get('stereo', {}).get(
+            f'{other}_solver', {}).get('errors', {}).get('rms_m'),
+        'map_rmse_stereo_other_solver_m': results.get('stereo', {}).get(
+            f'{other}_solver', {}).get('map', {}).get('rmse_m'),
         'partial_updates_depth': int(np.sum(ours['n_degenerate'] > 0)),
         'partial_updates_stereo': results.get('stereo', {}).get('partial_updates', 0),
         'details': {
