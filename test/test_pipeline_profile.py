@@ -280,3 +280,53 @@ def test_bench_thread_variables_are_the_launchers():
                 os.environ.pop(k, None)
             else:
                 os.environ[k] = val
+
+
+def test_bench_against_profiles_an_earlier_commit_in_a_temporary_worktree(monkeypatch, capsys,
+                                                                          tmp_path):
+    # --against REV: the revision's code is checked out into a temporary git worktree, the
+    # profile runs there (cwd and PYTHONPATH), its medians are set beside the current tree's,
+    # and the worktree is gone afterwards. The profiles themselves are stubbed here (the test
+    # above runs the real ones): each returns its stage medians, twice as slow in the worktree.
+    from terrain_perception.bench import pipeline as bench
+    repo = bench.REPO
+    if subprocess.run(['git', '-C', str(repo), 'rev-parse', 'HEAD'],
+                      capture_output=True).returncode != 0:
+        pytest.fail(f'{repo} is not a git checkout: the --against benchmark needs one')
+    head = subprocess.run(['git', '-C', str(repo), 'rev-parse', 'HEAD'], capture_output=True,
+                          text=True).stdout.strip()
+    seen = []
+
+    def fake_profile(bag, captures, variant, code=None, title=None):
+        seen.append((variant, code))
+        if code is not None:
+            # the revision's tree is really there while its profile runs
+            assert (Path(code) / 'terrain_perception' / 'bench' / 'pipeline.py').is_file()
+            assert subprocess.run(['git', '-C', str(code), 'rev-parse', 'HEAD'],
+                                  capture_output=True, text=True).stdout.strip() == head
+        k = 2.0 if code is not None else 1.0
+        stages = {s: {'median_ms': k * (i + 1), 'p90_ms': k * (i + 2)}
+                  for i, s in enumerate(bench.STAGES)}
+        return {'threads': {}, 'compiled_ik': True, 'stages': stages,
+                'cpu_ms_per_capture': 10.0 * k, 'chain_cpu_ms_median_sum': 20.0 * k,
+                'chain_cpu_ms_per_capture_median': 20.0 * k, 'captures': captures,
+                'wall_s': 1.0, 'loadavg_1min': [0.0, 0.0]}
+
+    monkeypatch.setattr(bench, 'profile', fake_profile)
+    bag = tmp_path / 'bag'
+    bag.mkdir()
+    args = argparse.Namespace(bag=bag, captures=2, quick=False, sim_time=25.0,
+                              run_dir=Path('unused'), against='HEAD')
+    r = bench.run(args)
+    printed = capsys.readouterr().out
+    code = [c for v, c in seen if c is not None]
+    assert len(code) == 1 and not Path(code[0]).exists()          # removed afterwards
+    listed = subprocess.run(['git', '-C', str(repo), 'worktree', 'list'], capture_output=True,
+                            text=True).stdout
+    assert str(code[0]) not in listed
+    assert r['against']['rev'] == 'HEAD' and r['against']['commit'] == head
+    assert r['against_ratio']['chain'] == pytest.approx(2.0)
+    assert all(r['against_ratio'][s] == pytest.approx(2.0) for s in bench.STAGES)
+    assert 'HEAD / the current tree' in printed
+    with pytest.raises(ValueError, match='rev-parse'):
+        bench.profile_revision(bag, 2, 'no-such-revision-xyz')

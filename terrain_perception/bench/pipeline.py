@@ -176,9 +176,10 @@ def run(args) -> dict:
     bag = record_bag(args.run_dir, args.sim_time) if args.bag is None else args.bag
     if not bag.exists():
         raise FileNotFoundError(f'bag {str(bag)!r} does not exist')
+    against = getattr(args, 'against', None)
     res = {v: profile(bag, captures, v) for v in VARIANTS}
-    if args.against:
-        res['against'] = profile_revision(bag, captures, args.against)
+    if against:
+        res['against'] = profile_revision(bag, captures, against)
     variants = {}
     for v, r in res.items():
         variants[v] = {
@@ -225,15 +226,15 @@ def run(args) -> dict:
     print(f'planner map callback (replan + dry run): numpy IK {k["stage_median_ms"]["plan_map"]}'
           f' ms, compiled IK {n["stage_median_ms"]["plan_map"]} ms -> {out["plan_map_ik_ratio"]}x;'
           f' chain {k["chain_cpu_ms_median_sum"]} -> {n["chain_cpu_ms_median_sum"]} ms')
-    if args.against:
+    if against:
         a = variants.pop('against')
         ratios = {st: _ratio(a['stage_median_ms'][st], n['stage_median_ms'][st])
                   for st in STAGES}
         ratios['chain'] = _ratio(a['chain_cpu_ms_median_sum'], n['chain_cpu_ms_median_sum'])
-        out['against'] = {'rev': args.against, 'commit': res['against']['commit'], **a}
+        out['against'] = {'rev': against, 'commit': res['against']['commit'], **a}
         out['against_ratio'] = ratios
-        print(f'\n=== per capture, {args.against} / the current tree (node env; CPU ms, medians)')
-        print(f'{"stage":22s} {args.against[:14]:>14s} {"current":>10s} {"ratio":>7s}')
+        print(f'\n=== per capture, {against} / the current tree (node env; CPU ms, medians)')
+        print(f'{"stage":22s} {against[:14]:>14s} {"current":>10s} {"ratio":>7s}')
         rows = [(st, a['stage_median_ms'][st], n['stage_median_ms'][st]) for st in STAGES]
         rows += [('chain, sum of medians', a['chain_cpu_ms_median_sum'],
                   n['chain_cpu_ms_median_sum'])]
