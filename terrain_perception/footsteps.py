@@ -161,6 +161,14 @@ class PlannerConfig:
         0.85, 'the safety filter on the map flags cells beyond this share of the unevenness and '
         'slope limits: a map coarser and noisier than the terrain under-reads the edges the '
         'foot meets (1 = no margin)', 0.1, 1.0)
+    safety_surface: str = param(
+        'heights', "what the slope and unevenness limits are applied to: 'heights', the map's "
+        "heights; 'foot', the surface a ball foot lowered onto each cell rests on (the heights "
+        'dilated by the foot, :func:`foot_surface`): floor next to a rock is safe once the foot '
+        'does not touch the rock', choices=('heights', 'foot'))
+    safety_window_m: float = param(
+        0.0, 'half-side of the square over which the slope and unevenness are measured '
+        '(0 = 2 foot radii) [m]', 0.0, 1.0)
     max_leg_spread_m: float = param(
         0.12, 'largest distance along the walking direction by which a new foothold may lead '
         'the rearmost other foot, both measured from their nominal places [m] (0 = no limit)',
@@ -301,16 +309,39 @@ def flatness_cost(heights: np.ndarray, ground_z: float,
     return np.abs(h - ground_z) + (features.shao_dev(h) if dev is None else dev)
 
 
+def foot_surface(heights: np.ndarray, resolution_m: float, foot_radius_m: float) -> np.ndarray:
+    """Where a ball foot of radius ``rho = foot_radius_m`` [m] lowered straight down over each
+    cell comes to rest, as the height of its lowest point [m]: the heights dilated by the ball,
+    ``max over |d| <= rho of h(x + d) + sqrt(rho^2 - |d|^2) - rho``. Equal to the height on
+    ground flat over the foot's radius; next to a rock's flank the foot rests against the flank
+    and the surface rises with it. Unknown cells stay unknown and do not count for their
+    neighbours."""
+    from scipy import ndimage
+    h = np.asarray(heights, dtype=np.float64)
+    r = int(np.floor(foot_radius_m / resolution_m))
+    if r < 1:
+        return h.copy()
+    d = np.arange(-r, r + 1) * resolution_m
+    d2 = d[:, None] ** 2 + d[None, :] ** 2
+    fp = d2 <= foot_radius_m ** 2
+    lift = np.where(fp, np.sqrt(np.maximum(foot_radius_m ** 2 - d2, 0.0)) - foot_radius_m, 0.0)
+    known = np.isfinite(h)
+    out = ndimage.grey_dilation(np.where(known, h, -1e9), footprint=fp, structure=lift,
+                                mode='nearest')
+    return np.where(known, out, np.nan)
+
+
 def unsafe_cells(heights: np.ndarray, resolution_m: float, foot_radius_m: float,
-                 max_slope_deg: float = 30.0, rms_fraction: float = 0.5) -> np.ndarray:
+                 max_slope_deg: float = 30.0, rms_fraction: float = 0.5,
+                 window_m: float = 0.0) -> np.ndarray:
     """Cells where a ball foot of radius ``rho = foot_radius_m`` [m] is unsafe: within the
-    square of side ~4 rho around the cell, the heights' RMS deviation from their least-squares
+    square of half-side ``window_m`` (0: ~2 rho) around the cell, the heights' RMS deviation from their least-squares
     plane exceeds ``rms_fraction * rho`` (an edge, a crack or a knob under the foot), or the plane
     is steeper than ``max_slope_deg`` (the friction limit with margin). Unknown cells and windows
     with unknown heights are not flagged (the caller masks unknown cells separately)."""
     from scipy import ndimage
     h = np.asarray(heights, dtype=np.float64)
-    r = max(1, int(round(2 * foot_radius_m / resolution_m)))
+    r = max(1, int(round((window_m if window_m > 0 else 2 * foot_radius_m) / resolution_m)))
     u = np.arange(-r, r + 1, dtype=np.float64)
     n2 = float(len(u)) ** 2
     box = np.ones_like(u)
@@ -573,9 +604,12 @@ class FootstepPlanner:
             self._belly_top = top_field(grid, self._belly_spacing)
         if self.cfg.max_unevenness > 0:
             k = self.cfg.map_safety_factor
-            self.allowed &= ~unsafe_cells(grid[ELEVATION], grid.resolution_m,
+            h = grid[ELEVATION]
+            if self.cfg.safety_surface == 'foot':
+                h = foot_surface(h, grid.resolution_m, self.robot.foot_radius_m)
+            self.allowed &= ~unsafe_cells(h, grid.resolution_m,
                                           self.robot.foot_radius_m, k * self.cfg.max_slope_deg,
-                                          k * self.cfg.max_unevenness)
+                                          k * self.cfg.max_unevenness, self.cfg.safety_window_m)
         return None
 
     # ---- helpers ---------------------------------------------------------------------------
