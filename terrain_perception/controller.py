@@ -70,11 +70,6 @@ class WalkingConfig:
     terrain_clearance_m: float = param(0.0, 'Swing apex above the highest terrain under the '
                                        'swing path [m] (0 = half the profile swing height)',
                                        0.0, 0.5)
-    swing_lift_from_start: bool = param(
-        False, 'the swing apex is the profile\'s swing height above the foothold the foot '
-        'lifts from (and terrain_clearance_m above the terrain under its path) instead of above '
-        'the higher of the two footholds: a step up onto a rock then clears the rock by the '
-        'terrain clearance, 2 cm lower, within the reach of a leg whose hip is 14.5 cm up')
     knot_dt_s: float = param(0.02, 'Spacing of IK knots for the joint cubic splines [s]',
                              0.002, 0.5)
     plan_timeout_s: float = param(5.0, 'A plan older than this starts no new step [s]',
@@ -1388,8 +1383,7 @@ class WalkingController:
         a, b = transform_points(T, p0[None])[0], transform_points(T, p1[None])[0]
         apex_map = gaitlib.swing_apex(a, b, self.height, self.clearance_m,
                                       corridor_m=1.5 * self.model.foot_radius_m,
-                                      min_lift_m=self.model.swing_height_m,
-                                      lift_from_start=self.config.swing_lift_from_start)
+                                      min_lift_m=self.model.swing_height_m)
         ends = np.array([[a[0], a[1], apex_map], [b[0], b[1], apex_map]])
         return float(transform_points(invert(T), ends)[:, 2].max())
 

@@ -141,14 +141,11 @@ def terrain_height(height: HeightFn, xy: np.ndarray) -> np.ndarray:
 
 
 def swing_apex(p0: np.ndarray, p1: np.ndarray, height: HeightFn, clearance_m: float,
-               corridor_m: float, min_lift_m: float, samples: int = 41,
-               lift_from_start: bool = False) -> float:
+               corridor_m: float, min_lift_m: float, samples: int = 41) -> float:
     """Apex height [m] of a swing from contact point ``p0`` to ``p1`` (world).
 
     The apex clears the highest terrain within ``corridor_m`` of the straight x-y path by
-    ``clearance_m`` and is at least ``min_lift_m`` above the higher foothold (with
-    ``lift_from_start``, above ``p0``, the foothold the foot lifts from: a step up onto a rock
-    then clears the rock by ``clearance_m``, not by ``min_lift_m``).
+    ``clearance_m`` and is at least ``min_lift_m`` above the higher foothold.
     """
     p0, p1 = np.asarray(p0, float), np.asarray(p1, float)
     s = np.linspace(0.0, 1.0, samples)
@@ -161,8 +158,7 @@ def swing_apex(p0: np.ndarray, p1: np.ndarray, height: HeightFn, clearance_m: fl
                corridor_m * fwd, -corridor_m * fwd]
     pts = np.concatenate([line + o for o in offsets])
     h = terrain_height(height, pts).max()
-    base = p0[2] if lift_from_start else max(p0[2], p1[2])
-    return float(max(base + min_lift_m, h + clearance_m))
+    return float(max(max(p0[2], p1[2]) + min_lift_m, h + clearance_m))
 
 
 @dataclass(frozen=True)

@@ -64,23 +64,6 @@ def test_swing_clears_a_box_under_its_path():
     assert G.swing_apex(p0, p1, None, 0.02, 0.01, 0.03) == pytest.approx(0.03)
 
 
-def test_a_step_up_lifts_from_its_start_when_asked():
-    """A step from the floor onto a 7 cm block: by default the apex is the minimum lift above
-    the higher foothold (the block); lifting from the start, the terrain clearance over the
-    block decides."""
-    def height(xy):
-        xy = np.asarray(xy)
-        return np.where(np.abs(xy[..., 0] - 0.6) < 0.03, 0.07, 0.0)
-
-    p0, p1 = np.array([0.5, 0.0, 0.0]), np.array([0.6, 0.0, 0.07])
-    assert G.swing_apex(p0, p1, height, 0.02, 0.01, 0.04) == pytest.approx(0.11)
-    assert G.swing_apex(p0, p1, height, 0.02, 0.01, 0.04,
-                        lift_from_start=True) == pytest.approx(0.09)
-    # A step down keeps the minimum lift above where the foot starts.
-    assert G.swing_apex(p1, p0, height, 0.02, 0.01, 0.04,
-                        lift_from_start=True) == pytest.approx(0.11)
-
-
 def test_swing_final_approach_descends_slowly_over_its_height():
     p0, p1 = np.array([0.0, 0.0, 0.01]), np.array([0.1, 0.0, 0.0])
     sw = G.SwingTrajectory(p0, p1, 0.05, 0.35, approach_m=0.02, approach_speed_m_s=0.1)
