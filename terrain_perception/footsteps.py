@@ -335,9 +335,10 @@ def unsafe_cells(heights: np.ndarray, resolution_m: float, foot_radius_m: float,
                  max_slope_deg: float = 30.0, rms_fraction: float = 0.5,
                  window_m: float = 0.0) -> np.ndarray:
     """Cells where a ball foot of radius ``rho = foot_radius_m`` [m] is unsafe: within the
-    square of half-side ``window_m`` (0: ~2 rho) around the cell, the heights' RMS deviation from their least-squares
-    plane exceeds ``rms_fraction * rho`` (an edge, a crack or a knob under the foot), or the plane
-    is steeper than ``max_slope_deg`` (the friction limit with margin). Unknown cells and windows
+    square of half-side ``window_m`` (0: ~2 rho) around the cell, the heights' RMS deviation
+    from their least-squares plane exceeds ``rms_fraction * rho`` (an edge, a crack or a knob
+    under the foot), or the plane is steeper than ``max_slope_deg`` (the friction limit with
+    margin). Unknown cells and windows
     with unknown heights are not flagged (the caller masks unknown cells separately)."""
     from scipy import ndimage
     h = np.asarray(heights, dtype=np.float64)
