@@ -409,15 +409,28 @@ def test_floor_beside_a_rock_is_safe_on_the_foot_surface():
     g['cost'] = features.cost_map(h, res)
     far, near, flank = (int(round((0.2 + d) / res)) for d in (-0.01, -0.005, 0.01))
     j = n // 2
-    plain = fs.FootstepPlanner(ROBOT, fs.PlannerConfig())
+    plain = fs.FootstepPlanner(ROBOT, fs.PlannerConfig(safety_surface='heights',
+                                                       safety_window_m=0.0))
     assert plain.set_map(g) is None
     assert not plain.allowed[far, j] and not plain.allowed[flank, j]
-    small = fs.FootstepPlanner(ROBOT, fs.PlannerConfig(safety_window_m=0.01))
+    small = fs.FootstepPlanner(ROBOT, fs.PlannerConfig(safety_surface='heights',
+                                                       safety_window_m=0.01))
     assert small.set_map(g) is None and small.allowed[near, j]
-    foot = fs.FootstepPlanner(ROBOT, fs.PlannerConfig(safety_surface='foot',
-                                                      safety_window_m=0.01))
+    foot = fs.FootstepPlanner(ROBOT, fs.PlannerConfig())     # the defaults
     assert foot.set_map(g) is None
     assert foot.allowed[far, j] and not foot.allowed[near, j] and not foot.allowed[flank, j]
+
+
+def test_on_a_1cm_map_the_foot_surface_filter_is_the_one_before():
+    """On the closed loop's 1 cm map no other cell centre is within the foot's radius and the
+    window keeps 2 cells each side: the defaults flag what the heights over 2 foot radii did."""
+    g = _rocks(3)
+    new = fs.FootstepPlanner(ROBOT, fs.PlannerConfig())
+    old = fs.FootstepPlanner(ROBOT, fs.PlannerConfig(safety_surface='heights',
+                                                     safety_window_m=0.0))
+    assert new.set_map(g) is None and old.set_map(g) is None
+    np.testing.assert_array_equal(new.allowed, old.allowed)
+    assert 0.05 < new.allowed.mean() < 0.95
 
 
 def test_a_foot_left_behind_holds_the_others_back():
