@@ -381,6 +381,58 @@ def test_map_safety_factor_refuses_slopes_just_below_the_limit():
     assert plain.set_map(steep) is None and not plain.allowed[inner].any()
 
 
+def test_foot_surface_rises_only_where_the_ball_touches_a_wall():
+    """The ball foot (radius 9.5 mm) lowered next to a 10 cm wall rests on the wall's top edge
+    within its radius of it and on the floor beyond."""
+    res, rho = 0.005, ROBOT.foot_radius_m
+    h = np.zeros((40, 40))
+    h[20:, :] = 0.10                       # wall from x index 20 on
+    c = fs.foot_surface(h, res, rho)
+    np.testing.assert_allclose(c[20:], 0.10)
+    np.testing.assert_allclose(c[:18], 0.0)              # 10 mm from the wall: free
+    assert c[19, 5] == pytest.approx(0.10 + np.sqrt(rho ** 2 - res ** 2) - rho)
+    unknown = h.copy()
+    unknown[0, 0] = np.nan
+    assert np.isnan(fs.foot_surface(unknown, res, rho)[0, 0])
+
+
+def test_floor_beside_a_rock_is_safe_on_the_foot_surface():
+    """Floor 1 cm from the foot of a 60 deg, 8 cm rock: the heights' filter over 2 foot radii
+    (its window reaches into the flank) refuses it; the foot's resting surface over 1 cm
+    allows it (the ball does not touch the flank there). 5 mm from the rock the ball rests
+    against the flank: refused on the foot's surface, though the heights over 1 cm pass."""
+    res = 0.005
+    n = 80
+    x = np.arange(n) * res
+    h = np.clip((x - 0.2) * np.tan(np.radians(60.0)), 0.0, 0.08)[:, None] * np.ones((1, n))
+    g = GridMap(res, (0.0, 0.0), h.shape, {'elevation': h.astype(np.float32)})
+    g['cost'] = features.cost_map(h, res)
+    far, near, flank = (int(round((0.2 + d) / res)) for d in (-0.01, -0.005, 0.01))
+    j = n // 2
+    plain = fs.FootstepPlanner(ROBOT, fs.PlannerConfig(safety_surface='heights',
+                                                       safety_window_m=0.0))
+    assert plain.set_map(g) is None
+    assert not plain.allowed[far, j] and not plain.allowed[flank, j]
+    small = fs.FootstepPlanner(ROBOT, fs.PlannerConfig(safety_surface='heights',
+                                                       safety_window_m=0.01))
+    assert small.set_map(g) is None and small.allowed[near, j]
+    foot = fs.FootstepPlanner(ROBOT, fs.PlannerConfig())     # the defaults
+    assert foot.set_map(g) is None
+    assert foot.allowed[far, j] and not foot.allowed[near, j] and not foot.allowed[flank, j]
+
+
+def test_on_a_1cm_map_the_foot_surface_filter_is_the_one_before():
+    """On the closed loop's 1 cm map no other cell centre is within the foot's radius and the
+    window keeps 2 cells each side: the defaults flag what the heights over 2 foot radii did."""
+    g = _rocks(3)
+    new = fs.FootstepPlanner(ROBOT, fs.PlannerConfig())
+    old = fs.FootstepPlanner(ROBOT, fs.PlannerConfig(safety_surface='heights',
+                                                     safety_window_m=0.0))
+    assert new.set_map(g) is None and old.set_map(g) is None
+    np.testing.assert_array_equal(new.allowed, old.allowed)
+    assert 0.05 < new.allowed.mean() < 0.95
+
+
 def test_a_foot_left_behind_holds_the_others_back():
     """A hind foot stranded 2 cm short of the spread limit behind its nominal place: no
     planned foothold leads the rearmost other foot (both from their nominal places) by more

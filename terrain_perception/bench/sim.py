@@ -56,6 +56,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         choices=('rocks-6cm', 'rocks-12cm', 'stones-15cm'),
                         help='course class of the --rocks-only walks, by the closed-loop '
                         'benchmark\'s robot for it (stones-15cm: FROG-I); default rocks-6cm')
+    parser.add_argument('--rocks-remember-refusals', action='store_true',
+                        help='the rocks walks do not offer again a step the running controller '
+                        'refused although the dry run accepted it (footsteps.RefusedSteps, as '
+                        'the planner node does); by default the walk ends after 3 refusals in '
+                        'a row')
     parser.add_argument('--rocks-only', action='store_true',
                         help='only the rocks walks (no real-time factor and flat walks)')
     parser.add_argument('--no-localise', action='store_true',
@@ -122,7 +127,8 @@ STALL_S = 60.0   # the closed loop's default --stall-time
 
 def _rocks_walk(course, start_x: float, goal_x: float, seed: int, sensing: bool = True,
                 planner_kw: Optional[dict] = None, walking_kw: Optional[dict] = None,
-                trace_path=None, localise: bool = True, robot_name: str = 'littledog') -> dict:
+                trace_path=None, localise: bool = True, robot_name: str = 'littledog',
+                remember_refusals: bool = False) -> dict:
     """Robot ``robot_name`` walks ``course`` from ``start_x`` towards ``goal_x`` on footsteps
     planned on the true terrain (receding horizon, every plan dry-run through the controller's
     checks).
@@ -134,9 +140,14 @@ def _rocks_walk(course, start_x: float, goal_x: float, seed: int, sensing: bool 
     ``localise`` nothing corrects it (odom = world), so footsteps planned on the true
     terrain land where the drift puts them. ``localise`` re-anchors it before each plan with
     the correction a perfect ICP would give, ``T_map_odom = T_true_base inv(T_odom_base)``
-    (the mapper's formula), and plans in the map (world) frame as the closed loop does."""
+    (the mapper's formula), and plans in the map (world) frame as the closed loop does.
+
+    With ``remember_refusals`` a step the running controller refused although the planner's
+    dry run accepted it is not offered again from that stance (:class:`RefusedSteps`, as the
+    planner node does); without it the same plan is offered again and the walk ends after 3
+    refusals in a row."""
     from terrain_perception.sim.trace import WalkTrace, fall_report
-    from terrain_perception.footsteps import PlannerConfig, FootstepPlanner
+    from terrain_perception.footsteps import PlannerConfig, FootstepPlanner, RefusedSteps
     from terrain_perception.sim.session import SimSession, SimSessionConfig
     from terrain_perception.sim.walk import WalkRunner
     m = load_robot_model(robot_name)
@@ -164,6 +175,7 @@ def _rocks_walk(course, start_x: float, goal_x: float, seed: int, sensing: bool 
         goal = np.array([goal_x, 0.0])
         next_leg, status, wall = None, 'ok', time.perf_counter()
         refused = 0
+        memory = RefusedSteps() if remember_refusals else None
         best_x, best_t = -np.inf, 0.0
         for _ in range(400):
             T = robot.base_pose()
@@ -186,10 +198,15 @@ def _rocks_walk(course, start_x: float, goal_x: float, seed: int, sensing: bool 
             feet, _ = ctl.upcoming_stance()
             feet = transform_points(ctl.T_map_odom, feet)
             T_chk = ctl.T_map_odom @ ctl.upcoming_body()
-            plan = planner.plan_checked(
-                T, goal, feet, lambda legs, pos, feet=feet, T_chk=T_chk: check_footsteps(
-                    m, cfg, feet, legs, pos, 'walk', height, T_body=T_chk),
-                first_leg=next_leg)
+            done0, now = ctl.steps_done, runner.t
+
+            def check(legs, pos, feet=feet, T_chk=T_chk, done0=done0, now=now):
+                if memory is not None and len(legs):
+                    why = memory.refusal(done0, legs[0], pos[0], now)
+                    if why is not None:
+                        return 0, f'the controller refused this step before: {why}'
+                return check_footsteps(m, cfg, feet, legs, pos, 'walk', height, T_body=T_chk)
+            plan = planner.plan_checked(T, goal, feet, check, first_leg=next_leg)
             if not plan.ok:
                 status = f'planner: {plan.status_text}'
                 break
@@ -197,7 +214,12 @@ def _rocks_walk(course, start_x: float, goal_x: float, seed: int, sensing: bool 
             pos = np.array([f.position for f in plan.footsteps])
             gait = 'trot' if plan.gait == 2 else 'walk'
             done_before = runner.controller.steps_done
-            if not runner.run(legs, pos, gait, max_time_s=30.0, frame='map'):
+            if memory is not None and len(legs):
+                memory.offered(done0, int(legs[0]), pos[0], now)
+            ran = runner.run(legs, pos, gait, max_time_s=30.0, frame='map')
+            if memory is not None:
+                memory.report(ctl.steps_done, '' if ran else ctl.last_error, runner.t)
+            if not ran:
                 # A refused step: replan from where the robot stands (receding horizon);
                 # give up after 3 refusals in a row.
                 status = f'controller: {runner.controller.last_error or "timeout"}'
@@ -282,7 +304,7 @@ def _print_fall_reports(walks) -> None:
 def _rocks_seeds(n: int, start_x: float, goal_x: float, first: int = 0,
                  variant: Optional[dict] = None, trace_dir: str = '',
                  localise: bool = True, course_class: str = 'rocks-6cm',
-                 baseline: bool = True) -> dict:
+                 baseline: bool = True, remember_refusals: bool = False) -> dict:
     """The ground-truth-footstep walk over ``course_class`` (by the closed-loop benchmark's
     robot for it: LittleDog on the rocks, FROG-I on the stones) on seeds first..first+n-1,
     defaults against the baseline (and a variant of the defaults, if given); traced to
@@ -296,7 +318,8 @@ def _rocks_seeds(n: int, start_x: float, goal_x: float, first: int = 0,
     seeds = list(range(first, first + n))
     for seed in seeds:
         course = make_course(course_class, seed, 0.005)
-        kw = dict(localise=localise, robot_name=robot_name)
+        kw = dict(localise=localise, robot_name=robot_name,
+                  remember_refusals=remember_refusals)
         rows['default'].append(_rocks_walk(
             course, start_x, goal_x, seed, **kw,
             trace_path=_trace_path(trace_dir, seed, 'default', course_class)))
@@ -311,7 +334,8 @@ def _rocks_seeds(n: int, start_x: float, goal_x: float, first: int = 0,
                 walking_kw=variant['controller'], **kw,
                 trace_path=_trace_path(trace_dir, seed, 'variant', course_class)))
     print(f'\n{course_class} ({robot_name}), ground-truth footsteps'
-          f'{", localised" if localise else ""}, '
+          f'{", localised" if localise else ""}'
+          f'{", refused steps remembered" if remember_refusals else ""}, '
           f'x {start_x} -> {goal_x} m, seeds '
           f'{seeds[0]}-{seeds[-1]}{" (held out: defaults chosen on 0-7)" if first >= 8 else ""} '
           '(F = fell, X = crossed)'
@@ -364,7 +388,8 @@ def run(args: argparse.Namespace) -> dict:
         cc = course_config(rocks_course)
         return _rocks_seeds(n_rocks, cc.approach_m - 0.6, cc.approach_m + cc.rough_length_m + 0.4,
                             int(getattr(args, 'rocks_first_seed', 0)), variant, trace_dir,
-                            localise, rocks_course, not getattr(args, 'no_baseline', False))
+                            localise, rocks_course, not getattr(args, 'no_baseline', False),
+                            bool(getattr(args, 'rocks_remember_refusals', False)))
     course = make_course('rocks-6cm', seed, 0.005)
 
     rtf_rows = []
