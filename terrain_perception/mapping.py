@@ -6,7 +6,9 @@ Each capture is a cloud in the camera-optical frame plus the dead-reckoning pose
 1. predicts the camera pose in ``map`` from dead reckoning and the current correction
    ``T_map_odom`` (the paper: "a very reasonable initial guess simply by using dead reckoning");
 2. aligns a sparse, uniformly sub-sampled copy of the cloud to the **coarse model** with
-   point-to-plane ICP, ``E = sum(((R p_i + t - q_i) . n_i)^2)`` (Open3D's solver, robust kernel);
+   point-to-plane ICP, ``E = sum(((R p_i + t - q_i) . n_i)^2)`` with a robust kernel: by default
+   :func:`constrained_icp` (Gauss-Newton that keeps the prior along the directions the
+   geometry does not constrain, in every iteration), or Open3D's solver (``icp_solver``);
 3. rejects the alignment when its fitness is low, its residual high, or its correction much
    larger than the drift dead reckoning can have accumulated since the last accepted capture
    (then the prior is kept and the capture is not fused);
@@ -227,7 +229,8 @@ class MapperUpdate:
         T_map_base, T_map_camera: pose of the capture [4x4] (ICP's if accepted, else the prior).
         T_map_base_prior: the dead-reckoning prediction.
         T_map_odom: the correction after this capture.
-        fitness: Open3D's ICP fitness; inlier_rmse_m: point-to-plane RMSE [m] over the
+        fitness: the ICP's fitness (share of source points with a correspondence at the
+            returned pose); inlier_rmse_m: point-to-plane RMSE [m] over the
             correspondences (both NaN for the first capture).
         correction_m, correction_deg: ICP pose minus prior (body position [m], rotation [deg]).
         n_source, n_model: ICP source points and coarse-model points.
