@@ -41,7 +41,9 @@ from terrain_msgs.msg import GroundPlane as GroundPlaneMsg
 from terrain_perception.camera import StereoCamera
 from terrain_perception.config import check_value, param
 from terrain_perception.ground_plane import GroundPlaneConfig, fit_ground_plane
-from terrain_perception.stereo import StereoConfig, StereoInputError, StereoPipeline
+from terrain_perception.robot_model import available_robots, load_robot_model
+from terrain_perception.stereo import (StereoConfig, StereoInputError, StereoPipeline,
+                                       floor_disparity_range)
 from terrain_ros.conversions import (camera_info_to_stereo, disparity_to_msg, image_to_numpy,
                                      make_header, stamp_key, stamp_to_sec, xyz_to_cloud)
 from terrain_ros.node import Counters, run_node
@@ -71,6 +73,16 @@ class StereoNodeConfig:
                                      'allows; false: only on the rate timer\'s next tick (up to '
                                      'a period later; the latency baseline of terrain-bench '
                                      'latency)')
+    robot: str = param('', 'robot profile (config/robots/) whose camera mount sizes the '
+                       'disparity search range: the floor at the bottom image row at standing '
+                       'height, x disparity_margin, rounded up to 16 px, with the focal length '
+                       'and baseline of camera_info (littledog: 96, frog: 112 at full '
+                       'resolution); it replaces num_disparities. Ground nearer than the range '
+                       'reaches is matched to the wrong pixel (the loop ran FROG-I with '
+                       'LittleDog\'s 96 px). Empty: num_disparities as set')
+    disparity_margin: float = param(1.25, 'see robot: the search range covers the floor\'s '
+                                    'disparity times this (nearer obstacles, body motion) [-]',
+                                    1.0, 10.0)
 
 
 class StereoSync:
@@ -125,6 +137,13 @@ class StereoNode(Node):
         self.add_on_set_parameters_callback(self._check_whole_stereo_config)
 
         self.counters = Counters(self)
+        self._robot = None
+        self._logged_range: Optional[int] = None
+        if self.node_cfg.robot:
+            if self.node_cfg.robot not in available_robots():
+                raise ValueError(f'unknown robot {self.node_cfg.robot!r} '
+                                 f'(known: {available_robots()})')
+            self._robot = load_robot_model(self.node_cfg.robot)
         self._sync = StereoSync(self.node_cfg.sync_queue_size)
         self._info: Dict[str, Optional[CameraInfo]] = {'left': None, 'right': None}
         self._stereo: Optional[StereoCamera] = None
@@ -168,6 +187,14 @@ class StereoNode(Node):
 
     def _on_node_cfg(self, cfg: StereoNodeConfig) -> None:
         old, self.node_cfg = self.node_cfg, cfg
+        if (cfg.robot, cfg.disparity_margin) != (old.robot, old.disparity_margin):
+            if cfg.robot and cfg.robot not in available_robots():
+                self.node_cfg = dataclasses.replace(cfg, robot=old.robot)
+                self.counters.bump('bad_parameter', f'unknown robot {cfg.robot!r} (known: '
+                                                    f'{available_robots()}); kept {old.robot!r}')
+            else:
+                self._robot = load_robot_model(cfg.robot) if cfg.robot else None
+            self._pipeline = None                # the search range is sized anew
         self._sync.queue_size = cfg.sync_queue_size
         if cfg.max_rate_hz != old.max_rate_hz:
             self.destroy_timer(self._timer)
@@ -300,14 +327,16 @@ class StereoNode(Node):
         if stereo is None:
             return False
         if self._pipeline is None:
-            self._pipeline = StereoPipeline(self.stereo_cfg, stereo)
+            self._pipeline = self._make_pipeline(stereo)
+            if self._pipeline is None:
+                return False
         try:
             frame = self._pipeline.process(*imgs, ACCEPTED_ENCODINGS[left.encoding])
         except StereoInputError as exc:
             self.counters.bump(exc.key, f'{exc}; pair dropped')
             return False
         stamp, frame_id = left.header.stamp, left.header.frame_id
-        c = self.stereo_cfg
+        c = self._pipeline.config
         self.pub_disparity.publish(disparity_to_msg(
             frame.disparity, stereo, frame_id, stamp, float(c.min_disparity),
             float(c.min_disparity + c.num_disparities - 1)))
@@ -317,6 +346,29 @@ class StereoNode(Node):
             self._publish_plane(frame.points, frame_id, stamp)
         self.frames_processed += 1
         return True
+
+    def _make_pipeline(self, stereo: StereoCamera) -> Optional[StereoPipeline]:
+        """The pipeline for ``stereo``; with ``robot`` set, its disparity range sized by the
+        robot's camera mount (:func:`floor_disparity_range`). None (counted) if that fails."""
+        cfg = self.stereo_cfg
+        if self._robot is not None:
+            T = np.eye(4)
+            T[2, 3] = self._robot.standing_height_m
+            try:
+                nd = floor_disparity_range(stereo, T @ self._robot.T_base_camera,
+                                           self.node_cfg.disparity_margin)
+                cfg = dataclasses.replace(cfg, num_disparities=nd)
+                StereoPipeline(cfg, stereo)       # checks the range against the image width
+            except ValueError as exc:
+                self.counters.bump('bad_disparity_range',
+                                   f'robot {self.node_cfg.robot!r}: {exc}; pair dropped')
+                return None
+            if nd != self._logged_range:
+                self._logged_range = nd
+                self.get_logger().info(
+                    f'disparity search range {nd} px from the {self.node_cfg.robot} camera mount '
+                    f'(fx {stereo.left.fx:.1f} px, baseline {stereo.baseline_m:.3f} m)')
+        return StereoPipeline(cfg, stereo)
 
     def _publish_plane(self, points: np.ndarray, frame_id: str, stamp) -> None:
         try:

@@ -453,6 +453,27 @@ def ray_planes(camera: PinholeCamera) -> np.ndarray:
     return np.ascontiguousarray(np.moveaxis(r[..., :2], -1, 0), dtype=np.float32)
 
 
+def floor_disparity_range(stereo: StereoCamera, T_floor_cam: np.ndarray,
+                          margin: float = 1.25) -> int:
+    """The ``num_disparities`` [px] a camera at pose ``T_floor_cam`` (4x4, optical frame in a
+    frame whose z = 0 plane is the floor, z up) needs: the disparity of the floor at the bottom
+    image row, the nearest ground it sees, times ``margin`` (obstacles nearer than the floor,
+    body motion), rounded up to a multiple of 16. Nearer than the search range reaches, SAD
+    matches the wrong pixel instead of leaving it empty: FROG-I's camera, 0.65 m up with a
+    12 cm baseline, needs 112 px (the loop ran it with LittleDog's 96, short of a stone top near
+    the bottom rows). Raises ValueError when the bottom row does not look down at the floor."""
+    cam = stereo.left
+    T = np.asarray(T_floor_cam, dtype=np.float64)
+    ray = T[:3, :3] @ np.array([0.0, (cam.height - 1 - cam.cy) / cam.fy, 1.0])
+    if ray[2] >= 0 or T[2, 3] <= 0:
+        raise ValueError('the camera does not see the floor at its bottom image row')
+    if not np.isfinite(margin) or margin < 1.0:
+        raise ValueError(f'disparity margin must be >= 1, got {margin}')
+    z = T[2, 3] / -ray[2]           # z-depth of the floor hit (the ray has optical z = 1)
+    d = cam.fx * stereo.baseline_m / z * margin
+    return int(np.ceil(d / 16.0) * 16)
+
+
 def coarse_subsample(points: np.ndarray, step: int) -> np.ndarray:
     """Uniform subsample of an organized cloud: every ``step``-th pixel in rows and columns,
     starting half a step in (paper 000, section II: the coarse model for ICP alignment).

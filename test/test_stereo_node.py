@@ -282,3 +282,62 @@ def test_runtime_parameters_are_checked_and_applied(ros_context):
     assert node.set_parameters([Parameter('max_rate_hz', value=5.0)])[0].successful
     assert node._timer.timer_period_ns == 200_000_000
     node.destroy_node()
+
+
+def _frog_view():
+    """FROG-I's stereo camera at half resolution (as the graph tests run it), standing on flat
+    ground among 3-20 cm blocks: the pair, the camera pose and the terrain."""
+    from terrain_perception.robot_model import load_robot_model
+    m = load_robot_model('frog')
+    cam = m.camera
+    half = PinholeCamera(cam.width // 2, cam.height // 2, cam.fx / 2, cam.fy / 2,
+                         (cam.width // 2 - 1) / 2.0, (cam.height // 2 - 1) / 2.0)
+    stereo = StereoCamera(half, m.baseline_m)
+    T_base = make_T(np.eye(3), [0.0, 0.0, m.standing_height_m])
+    T_world_cam = T_base @ m.T_base_camera
+    grid = synthetic_course('boxes', seed=5, size_xy=(5.0, 4.0))
+    left, right, _ = render_pair_raycast(grid, stereo, T_world_cam, seed=5)
+    return stereo, T_world_cam, grid, left, right
+
+
+def _disparity_of_pair(h, stereo, left, right):
+    h.send_info(stereo)
+    assert h.spin(lambda: h.node._info['right'] is not None, 5.0)
+    h.send_pair(left, right, 3.0)
+    assert h.spin(lambda: bool(h.got['disparity']))
+    return msg_to_disparity(h.got['disparity'][0])
+
+
+def test_the_robot_profile_sizes_the_disparity_range_to_the_nearest_ground(ros_context,
+                                                                         executor):
+    # FROG-I's camera is 0.65 m up with a 12 cm baseline: at half resolution the floor at the
+    # bottom image row is 47 px away, 59 with the 1.25 margin -> 64 px from camera_info and
+    # the mount (112 at full resolution, LittleDog's 96). A range that stops short of the
+    # nearest ground (32 px here) matches the wrong pixel there instead of leaving it empty.
+    stereo, T, grid, left, right = _frog_view()
+    _, _, depth = render_pair_raycast(grid, stereo, T, seed=5)
+    gt = stereo.depth_to_disparity(depth)
+
+    def bad2(d):
+        both = np.isfinite(d) & np.isfinite(gt)
+        return float(np.mean(np.abs(d[both] - gt[both]) > 2.0))
+
+    sized = Harness(ros_context, executor, robot='frog')
+    d = _disparity_of_pair(sized, stereo, left, right)
+    assert sized.node._pipeline.config.num_disparities == 64
+    assert np.nanmax(gt) < 64 and bad2(d) < 0.01
+    executor.remove_node(sized.node)
+    executor.remove_node(sized.io)
+    sized.node.destroy_node()
+    sized.io.destroy_node()
+    short = Harness(ros_context, executor, num_disparities=32)
+    d_short = _disparity_of_pair(short, stereo, left, right)
+    assert short.node._pipeline.config.num_disparities == 32
+    beyond = np.isfinite(gt) & (gt >= 32)
+    assert beyond.sum() > 10000 and np.sum(beyond & np.isfinite(d_short)) > 1000
+    assert bad2(d_short) > 5 * bad2(d)
+
+
+def test_an_unknown_robot_is_refused_with_its_name(ros_context):
+    with pytest.raises(ValueError, match="unknown robot 'dog'"):
+        StereoNode(context=ros_context, parameter_overrides=[Parameter('robot', value='dog')])

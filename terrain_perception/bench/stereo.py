@@ -309,14 +309,10 @@ class SceneResult:
 def robot_num_disparities(stereo: StereoCamera, T_world_cam: np.ndarray,
                           margin: float = 1.25) -> int:
     """Search range [px] covering the floor at the bottom image row, with a margin for
-    obstacles and body motion, rounded up to a multiple of 16."""
-    cam = stereo.left
-    ray = T_world_cam[:3, :3] @ np.array([0.0, (cam.height - 1 - cam.cy) / cam.fy, 1.0])
-    if ray[2] >= 0:
-        raise ValueError('the camera does not see the floor at its bottom row')
-    z = T_world_cam[2, 3] / -ray[2]           # z-depth of the floor hit (ray has z = 1)
-    d = stereo.left.fx * stereo.baseline_m / z * margin
-    return int(np.ceil(d / 16.0) * 16)
+    obstacles and body motion, rounded up to a multiple of 16
+    (:func:`terrain_perception.stereo.floor_disparity_range`, as the stereo node sizes it)."""
+    from terrain_perception.stereo import floor_disparity_range
+    return floor_disparity_range(stereo, T_world_cam, margin)
 
 
 def _course_scene(course: str, seed: int, resolution_m: float) -> Tuple[GridMap, GridMap]:

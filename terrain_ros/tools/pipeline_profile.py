@@ -291,7 +291,8 @@ class Replay:
             P = Parameter
             # Every recorded pair is processed (no rate limit between the replayed pairs).
             self.S = self._add(StereoNode(context=self.ctx, parameter_overrides=[
-                P('always_process', value=True), P('max_rate_hz', value=1000.0)]))
+                P('always_process', value=True), P('max_rate_hz', value=1000.0),
+                P('robot', value=robot)]))
             self.M = self._add(IcpMapperNode(context=self.ctx, parameter_overrides=[
                 P('robot', value=robot)]))
             self.F = self._add(TerrainFillNode(context=self.ctx, parameter_overrides=[
