@@ -100,7 +100,12 @@ class StereoConfig:
                                choices=NORMALISATIONS)
     prefilter: str = param('xsobel', 'StereoBM pre-filter', choices=PREFILTERS)
     prefilter_cap: int = param(31, 'StereoBM pre-filter clip value [grey levels]', 1, 63)
-    texture_threshold: int = param(0, 'StereoBM: minimum window texture, 0 = off', 0, 10000)
+    texture_threshold: int = param(
+        10, 'StereoBM: minimum window texture, 0 = off. A uniform region (a saturated sky) has '
+        'no match, yet SAD returns one: FROG-I pitched 5 deg nose-up saw white sky in its top '
+        '64 rows, and 11 % of its points landed 0.4-0.7 m above the stones (the loop mapped '
+        'them at its camera\'s height and stalled on them); at 10 they are gone and rendered '
+        'views with truth keep bad2 and coverage unchanged', 0, 10000)
     uniqueness_ratio: int = param(0, 'StereoBM: best-vs-second margin [%], 0 = off', 0, 100)
     speckle_window_px: int = param(0, 'StereoBM speckle filter: blobs of fewer pixels are '
                                    'dropped [px], 0 = off', 0, 10000)
