@@ -350,25 +350,26 @@ class StereoNode(Node):
     def _make_pipeline(self, stereo: StereoCamera) -> Optional[StereoPipeline]:
         """The pipeline for ``stereo``; with ``robot`` set, its disparity range sized by the
         robot's camera mount (:func:`floor_disparity_range`). None (counted) if that fails."""
-        cfg = self.stereo_cfg
-        if self._robot is not None:
-            T = np.eye(4)
-            T[2, 3] = self._robot.standing_height_m
-            try:
-                nd = floor_disparity_range(stereo, T @ self._robot.T_base_camera,
-                                           self.node_cfg.disparity_margin)
-                cfg = dataclasses.replace(cfg, num_disparities=nd)
-                StereoPipeline(cfg, stereo)       # checks the range against the image width
-            except ValueError as exc:
-                self.counters.bump('bad_disparity_range',
-                                   f'robot {self.node_cfg.robot!r}: {exc}; pair dropped')
-                return None
-            if nd != self._logged_range:
-                self._logged_range = nd
-                self.get_logger().info(
-                    f'disparity search range {nd} px from the {self.node_cfg.robot} camera mount '
-                    f'(fx {stereo.left.fx:.1f} px, baseline {stereo.baseline_m:.3f} m)')
-        return StereoPipeline(cfg, stereo)
+        if self._robot is None:
+            return StereoPipeline(self.stereo_cfg, stereo)
+        T = np.eye(4)
+        T[2, 3] = self._robot.standing_height_m
+        try:
+            nd = floor_disparity_range(stereo, T @ self._robot.T_base_camera,
+                                       self.node_cfg.disparity_margin)
+            # (the pipeline checks the range against the image width)
+            pipeline = StereoPipeline(dataclasses.replace(self.stereo_cfg, num_disparities=nd),
+                                      stereo)
+        except ValueError as exc:
+            self.counters.bump('bad_disparity_range',
+                               f'robot {self.node_cfg.robot!r}: {exc}; pair dropped')
+            return None
+        if nd != self._logged_range:
+            self._logged_range = nd
+            self.get_logger().info(
+                f'disparity search range {nd} px from the {self.node_cfg.robot} camera mount '
+                f'(fx {stereo.left.fx:.1f} px, baseline {stereo.baseline_m:.3f} m)')
+        return pipeline
 
     def _publish_plane(self, points: np.ndarray, frame_id: str, stamp) -> None:
         try:
