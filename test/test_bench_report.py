@@ -38,8 +38,11 @@ def test_sim_rocks_variant_is_parsed_and_bad_ones_refused_by_name(capsys):
     assert parse_rocks_variant('') is None
     v = parse_rocks_variant('{"planner": {"stride_centre": "rule"}}')
     assert v == {'planner': {'stride_centre': 'rule'}, 'controller': {}}
+    assert parse_rocks_variant('{"control_rate_hz": 50}') == {
+        'planner': {}, 'controller': {}, 'control_rate_hz': 50.0}
     for text, words in (('{"planner": ', 'not JSON'),
                         ('{"walker": {}}', 'must be an object'),
+                        ('{"control_rate_hz": -5}', 'positive number'),
                         ('{"controller": {"no_such_gain": 1}}', 'no_such_gain')):
         rc = runner.main(['sim', '--rocks-only', '--rocks-seeds', '1', '--rocks-variant', text])
         assert rc == 2

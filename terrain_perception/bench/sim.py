@@ -61,6 +61,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         'refused although the dry run accepted it (footsteps.RefusedSteps, as '
                         'the planner node does); by default the walk ends after 3 refusals in '
                         'a row')
+    parser.add_argument('--control-rate', type=float, default=None, metavar='HZ',
+                        help='the rocks walks update the controller HZ times per simulated '
+                        'second and follow its previewed trajectory between updates, as the '
+                        'walking controller node (50 Hz) and the bridge do; default: every '
+                        'physics step (500 Hz). A --rocks-variant may set its own '
+                        '"control_rate_hz"')
     parser.add_argument('--rocks-only', action='store_true',
                         help='only the rocks walks (no real-time factor and flat walks)')
     parser.add_argument('--no-localise', action='store_true',
@@ -128,7 +134,8 @@ STALL_S = 60.0   # the closed loop's default --stall-time
 def _rocks_walk(course, start_x: float, goal_x: float, seed: int, sensing: bool = True,
                 planner_kw: Optional[dict] = None, walking_kw: Optional[dict] = None,
                 trace_path=None, localise: bool = True, robot_name: str = 'littledog',
-                remember_refusals: bool = False) -> dict:
+                remember_refusals: bool = False, control_rate_hz: Optional[float] = None
+                ) -> dict:
     """Robot ``robot_name`` walks ``course`` from ``start_x`` towards ``goal_x`` on footsteps
     planned on the true terrain (receding horizon, every plan dry-run through the controller's
     checks).
@@ -145,7 +152,8 @@ def _rocks_walk(course, start_x: float, goal_x: float, seed: int, sensing: bool 
     With ``remember_refusals`` a step the running controller refused although the planner's
     dry run accepted it is not offered again from that stance (:class:`RefusedSteps`, as the
     planner node does); without it the same plan is offered again and the walk ends after 3
-    refusals in a row."""
+    refusals in a row. ``control_rate_hz``: :class:`WalkRunner`'s (None: every physics
+    step)."""
     from terrain_perception.sim.trace import WalkTrace, fall_report
     from terrain_perception.footsteps import PlannerConfig, FootstepPlanner, RefusedSteps
     from terrain_perception.sim.session import SimSession, SimSessionConfig
@@ -163,7 +171,8 @@ def _rocks_walk(course, start_x: float, goal_x: float, seed: int, sensing: bool 
         cfg = WalkingConfig(**wkw)
         trace = WalkTrace() if trace_path is not None else None
         runner = WalkRunner(client, robot, cfg, dt_s=DT, height=height,
-                            ground_id=(world.floor_id, world.terrain_id), trace=trace)
+                            ground_id=(world.floor_id, world.terrain_id), trace=trace,
+                            control_rate_hz=control_rate_hz)
         # Walk gait only: LittleDog's profile has no trot (the controller's trot is Shao's
         # quasi-static one, COG on the diagonal). trot_threshold_m keeps its default: it is also
         # the flatness test of stride_centre 'adaptive'.
@@ -263,18 +272,26 @@ def _rocks_walk(course, start_x: float, goal_x: float, seed: int, sensing: bool 
 
 
 def parse_rocks_variant(text: str) -> Optional[dict]:
-    """``--rocks-variant``: ``{"planner": {...}, "controller": {...}}`` or None if empty;
-    ValueError naming the problem otherwise (unknown sections or parameters included)."""
+    """``--rocks-variant``: ``{"planner": {...}, "controller": {...}, "control_rate_hz": HZ}``
+    (any of them) or None if empty; ValueError naming the problem otherwise (unknown sections
+    or parameters included)."""
     if not text:
         return None
     try:
         v = json.loads(text)
     except json.JSONDecodeError as exc:
         raise ValueError(f'--rocks-variant is not JSON: {exc}') from None
-    if not isinstance(v, dict) or not v or set(v) - {'planner', 'controller'} or \
-            not all(isinstance(x, dict) for x in v.values()):
+    sections = {'planner', 'controller'}
+    if not isinstance(v, dict) or not v or set(v) - sections - {'control_rate_hz'} or \
+            not all(isinstance(v[k], dict) for k in sections & set(v)):
         raise ValueError('--rocks-variant must be an object with "planner" and/or '
-                         f'"controller" objects of parameters, got {text!r}')
+                         '"controller" objects of parameters and/or a "control_rate_hz", got '
+                         f'{text!r}')
+    rate = v.get('control_rate_hz')
+    if rate is not None and not (isinstance(rate, (int, float)) and np.isfinite(rate)
+                                 and rate > 0):
+        raise ValueError(f'--rocks-variant: control_rate_hz must be a positive number, got '
+                         f'{rate!r}')
     from terrain_perception.controller import WalkingConfig
     from terrain_perception.footsteps import PlannerConfig
     for key, cls in (('planner', PlannerConfig), ('controller', WalkingConfig)):
@@ -282,7 +299,10 @@ def parse_rocks_variant(text: str) -> Optional[dict]:
         if unknown:
             raise ValueError(f'--rocks-variant: {cls.__name__} has no parameter(s) '
                              f'{sorted(unknown)}')
-    return {'planner': dict(v.get('planner', {})), 'controller': dict(v.get('controller', {}))}
+    out = {'planner': dict(v.get('planner', {})), 'controller': dict(v.get('controller', {}))}
+    if rate is not None:
+        out['control_rate_hz'] = float(rate)
+    return out
 
 
 def _trace_path(trace_dir: str, seed: int, row: str = '', course_class: str = 'rocks-6cm'):
@@ -304,7 +324,8 @@ def _print_fall_reports(walks) -> None:
 def _rocks_seeds(n: int, start_x: float, goal_x: float, first: int = 0,
                  variant: Optional[dict] = None, trace_dir: str = '',
                  localise: bool = True, course_class: str = 'rocks-6cm',
-                 baseline: bool = True, remember_refusals: bool = False) -> dict:
+                 baseline: bool = True, remember_refusals: bool = False,
+                 control_rate_hz: Optional[float] = None) -> dict:
     """The ground-truth-footstep walk over ``course_class`` (by the closed-loop benchmark's
     robot for it: LittleDog on the rocks, FROG-I on the stones) on seeds first..first+n-1,
     defaults against the baseline (and a variant of the defaults, if given); traced to
@@ -319,7 +340,7 @@ def _rocks_seeds(n: int, start_x: float, goal_x: float, first: int = 0,
     for seed in seeds:
         course = make_course(course_class, seed, 0.005)
         kw = dict(localise=localise, robot_name=robot_name,
-                  remember_refusals=remember_refusals)
+                  remember_refusals=remember_refusals, control_rate_hz=control_rate_hz)
         rows['default'].append(_rocks_walk(
             course, start_x, goal_x, seed, **kw,
             trace_path=_trace_path(trace_dir, seed, 'default', course_class)))
@@ -331,18 +352,22 @@ def _rocks_seeds(n: int, start_x: float, goal_x: float, first: int = 0,
         if variant is not None:
             rows['variant'].append(_rocks_walk(
                 course, start_x, goal_x, seed, planner_kw=variant['planner'],
-                walking_kw=variant['controller'], **kw,
+                walking_kw=variant['controller'],
+                **{**kw, 'control_rate_hz': variant.get('control_rate_hz', control_rate_hz)},
                 trace_path=_trace_path(trace_dir, seed, 'variant', course_class)))
     print(f'\n{course_class} ({robot_name}), ground-truth footsteps'
           f'{", localised" if localise else ""}'
-          f'{", refused steps remembered" if remember_refusals else ""}, '
+          f'{", refused steps remembered" if remember_refusals else ""}'
+          f'{f", controller at {control_rate_hz:g} Hz" if control_rate_hz else ""}, '
           f'x {start_x} -> {goal_x} m, seeds '
           f'{seeds[0]}-{seeds[-1]}{" (held out: defaults chosen on 0-7)" if first >= 8 else ""} '
           '(F = fell, X = crossed)'
           + (f'; baseline: {ROCKS_BASELINE_NAME} (planner {ROCKS_BASELINE[0]}, controller '
              f'{ROCKS_BASELINE[1]})' if baseline else '')
           + (f'; variant: the defaults with planner {variant["planner"]}, controller '
-             f'{variant["controller"]}' if variant is not None else ''))
+             f'{variant["controller"]}'
+             + (f', controller at {variant["control_rate_hz"]:g} Hz'
+                if variant.get('control_rate_hz') else '') if variant is not None else ''))
     summary = {}
     for name, rs in rows.items():
         crossed = [r['reached'] and not r['fell'] for r in rs]
@@ -389,7 +414,8 @@ def run(args: argparse.Namespace) -> dict:
         return _rocks_seeds(n_rocks, cc.approach_m - 0.6, cc.approach_m + cc.rough_length_m + 0.4,
                             int(getattr(args, 'rocks_first_seed', 0)), variant, trace_dir,
                             localise, rocks_course, not getattr(args, 'no_baseline', False),
-                            bool(getattr(args, 'rocks_remember_refusals', False)))
+                            bool(getattr(args, 'rocks_remember_refusals', False)),
+                            getattr(args, 'control_rate', None))
     course = make_course('rocks-6cm', seed, 0.005)
 
     rtf_rows = []
