@@ -78,18 +78,28 @@ def test_split_graph_closes_the_loop_across_two_launchers(tmp_path):
             assert offboard.poll() is None, (tmp_path / 'offboard.log').read_text()[-3000:]
         assert len(got) == 3, (f'received only {sorted(got)} within 300 s\n'
                                + (tmp_path / 'offboard.log').read_text()[-2000:])
-        # Each product came from the other launcher's process than its inputs.
-        pubs = {t: {i.node_name for i in node.get_publishers_info_by_topic(t)}
-                for t in ('/stereo/points', '/map/fine', '/footstep_plan', '/joint_commands',
-                          '/odom/dead_reckoning', '/icp/correction')}
+        # Each product came from the other launcher's process than its inputs. An endpoint can
+        # be discovered before its node's name (rmw's '_NODE_NAME_UNKNOWN_' until the remote
+        # participant's node list arrives; seen once with the machine loaded): wait for names.
+        def graph():
+            pubs = {t: {i.node_name for i in node.get_publishers_info_by_topic(t)}
+                    for t in ('/stereo/points', '/map/fine', '/footstep_plan', '/joint_commands',
+                              '/odom/dead_reckoning', '/icp/correction')}
+            subs = {t: {i.node_name for i in node.get_subscriptions_info_by_topic(t)}
+                    for t in ('/footstep_plan', '/icp/correction')}
+            return pubs, subs
+        deadline = time.monotonic() + 30.0
+        pubs, subs = graph()
+        while time.monotonic() < deadline and any(
+                '_NODE_NAME_UNKNOWN_' in names for d in (pubs, subs) for names in d.values()):
+            ex.spin_once(timeout_sec=0.1)
+            pubs, subs = graph()
         assert pubs['/stereo/points'] <= ROBOT_NODES and pubs['/stereo/points'], pubs
         assert pubs['/map/fine'] == {'icp_mapper'}, pubs
         assert pubs['/footstep_plan'] == {'footstep_planner'}, pubs
         assert pubs['/joint_commands'] == {'walking_controller'}, pubs
-        subs = {i.node_name for i in node.get_subscriptions_info_by_topic('/footstep_plan')}
-        assert 'walking_controller' in subs, subs
-        subs = {i.node_name for i in node.get_subscriptions_info_by_topic('/icp/correction')}
-        assert 'walking_controller' in subs, subs
+        assert 'walking_controller' in subs['/footstep_plan'], subs
+        assert 'walking_controller' in subs['/icp/correction'], subs
         # The map is built from real clouds: some cells are observed.
         from terrain_ros.conversions import msg_to_grid
         from terrain_ros.report import observed_mask
