@@ -7,13 +7,12 @@ import pytest
 
 import speedup_reference as ref
 import terrain_perception.fill as fillmod
-from terrain_perception.bench.stereo import (_body_pose, _course_scene, render_pair,
-                                             robot_num_disparities)
+from terrain_perception.bench.stereo import _body_pose, _course_scene, render_pair
 from terrain_perception.fill import CONTACT, TerrainFiller
 from terrain_perception.grid import ELEVATION
 from terrain_perception.ground_plane import GroundPlaneConfig, fit_ground_plane
 from terrain_perception.robot_model import load_robot_model
-from terrain_perception.stereo import StereoConfig, StereoPipeline
+from terrain_perception.stereo import StereoConfig, StereoPipeline, floor_disparity_range
 
 
 @pytest.fixture(scope='module')
@@ -27,7 +26,7 @@ def littledog_views():
         x0 = float(padded.metadata['rough_extent_xy'][0]) - 0.25
         T = _body_pose(np.random.default_rng(seed), x0, rm.standing_height_m) \
             @ rm.T_base_camera
-        cfg = StereoConfig(num_disparities=robot_num_disparities(rm.stereo, T))
+        cfg = StereoConfig(num_disparities=floor_disparity_range(rm.stereo, T))
         left, right, _ = render_pair('pybullet', course, padded, rm.stereo, T, seed)
         frame = StereoPipeline(cfg, rm.stereo).process(left, right)
         views.append((rm.stereo, cfg, left, right, frame))

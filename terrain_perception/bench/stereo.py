@@ -46,8 +46,8 @@ from terrain_perception.grid import ELEVATION, GridMap
 from terrain_perception.ground_plane import (GroundPlaneConfig, camera_pitch_from_pose,
                                              fit_ground_plane)
 from terrain_perception.stereo import (StereoConfig, StereoMatcher, StereoPipeline,
-                                       disparity_to_points, fixed_to_float, normalise,
-                                       postprocess, to_gray)
+                                       disparity_to_points, fixed_to_float, floor_disparity_range,
+                                       normalise, postprocess, to_gray)
 from terrain_perception.transforms import make_T, transform_points
 
 #: Default rays per pixel side of the renderers (``--supersample``). TinyRenderer samples the
@@ -306,15 +306,6 @@ class SceneResult:
     pitch_err_plain_deg: float
 
 
-def robot_num_disparities(stereo: StereoCamera, T_world_cam: np.ndarray,
-                          margin: float = 1.25) -> int:
-    """Search range [px] covering the floor at the bottom image row, with a margin for
-    obstacles and body motion, rounded up to a multiple of 16
-    (:func:`terrain_perception.stereo.floor_disparity_range`, as the stereo node sizes it)."""
-    from terrain_perception.stereo import floor_disparity_range
-    return floor_disparity_range(stereo, T_world_cam, margin)
-
-
 def _course_scene(course: str, seed: int, resolution_m: float) -> Tuple[GridMap, GridMap]:
     """A course from ``terrain_perception.terrain`` and the same course on a 6 m x 4 m floor
     (what the camera sees around the 1-2 m wide course; the simulator draws that floor)."""
@@ -368,7 +359,7 @@ def run_simulated(quick: bool, renderer: str = 'raycast', views: int = 3,
                 rng = np.random.default_rng(seed)
                 x0 = float(grid.metadata['rough_extent_xy'][0]) - lead_m
                 T = _body_pose(rng, x0, rm.standing_height_m) @ rm.T_base_camera
-                nd = robot_num_disparities(stereo, T)
+                nd = floor_disparity_range(stereo, T)
                 cfg = StereoConfig(num_disparities=nd)
                 left, right, depth = render_pair(renderer, course_grid, grid, stereo, T, seed,
                                                  supersample, texel)
