@@ -29,6 +29,7 @@ Everything is in the map frame; heights [m], z up. Pure numpy/scipy.
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass
 from typing import Optional, Tuple
 
@@ -37,8 +38,29 @@ from scipy.ndimage import maximum_filter
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import dijkstra
 
+from terrain_perception.compiled import load_compiled
 from terrain_perception.grid import ELEVATION, GridMap
 from terrain_perception.robot_model import RobotModel
+
+_LOG = logging.getLogger(__name__)
+# The compiled headroom gathers (terrain_perception._body_path_kernel), or None for the numpy
+# code (TERRAIN_BODY_PATH_NUMBA=0, or numba missing: logged once).
+_kernel = load_compiled('_body_path_kernel', 'TERRAIN_BODY_PATH_NUMBA', 'body path', _LOG)
+
+
+def use_compiled_kernel(enabled: Optional[bool] = True) -> bool:
+    """Select the compiled headroom kernel (``True``), the numpy code (``False``) or the
+    default (``None``) for the following :func:`plan_body_path` calls, process-wide; returns
+    whether the compiled kernel is now used."""
+    global _kernel
+    if enabled is None:
+        _kernel = load_compiled('_body_path_kernel', 'TERRAIN_BODY_PATH_NUMBA', 'body path', _LOG)
+    elif enabled:
+        from terrain_perception import _body_path_kernel
+        _kernel = _body_path_kernel
+    else:
+        _kernel = None
+    return _kernel is not None
 
 
 @dataclass(frozen=True)
@@ -109,6 +131,22 @@ def _lookup(grid: GridMap, field: np.ndarray, xy: np.ndarray) -> Tuple[np.ndarra
     return field[ij[..., 0], ij[..., 1]], inside
 
 
+def _belly_and_ground(grid: GridMap, top: np.ndarray, nodes: np.ndarray, bxy: np.ndarray,
+                      fxy: np.ndarray, ring: int) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Numpy reference of ``_body_path_kernel.belly_and_ground``: per body position the
+    highest ``top`` under the belly samples ``bxy``, the mean over the feet of each foot's
+    lowest cell of its ``ring`` samples in ``fxy`` (NaN if any is unknown), and whether every
+    sample is on the map."""
+    tops, t_in = _lookup(grid, top, nodes[:, None, :] + bxy[None])
+    fz, f_in = _lookup(grid, grid[ELEVATION], nodes[:, None, :] + fxy[None])
+    # Per foot the lowest of its samples (the foot may end up in the gap between two rocks),
+    # then the mean over the feet (the body follows the feet's plane); NaN if any is unknown.
+    fz = fz.astype(np.float64).reshape(len(nodes), -1, ring)
+    with np.errstate(invalid='ignore'):
+        ground = np.min(fz, axis=2).mean(axis=1)
+    return tops.max(axis=1), ground, t_in.all(axis=1) & f_in.all(axis=1)
+
+
 def plan_body_path(grid: GridMap, robot: RobotModel, start_xy: np.ndarray,
                    goal_xy: np.ndarray, heading: float,
                    settings: BodyPathSettings = BodyPathSettings(),
@@ -154,24 +192,27 @@ def plan_body_path(grid: GridMap, robot: RobotModel, start_xy: np.ndarray,
     if top is None:
         top = top_field(grid, spacing)
     bxy = belly[:, :2] @ R.T
-    tops, t_in = _lookup(grid, top, live_nodes[:, None, :] + bxy[None])
-    top_max = tops.max(axis=1)
     # Ground under the feet: five points around each nominal foot.
     ring = float(robot.foot_radius_m) * np.array(
         [[0, 0], [1, 0], [-1, 0], [0, 1], [0, -1]], dtype=np.float64)
     feet = np.asarray(robot.nominal_feet)[:, None, :2] + ring[None]
     fxy = feet.reshape(-1, 2) @ R.T
-    fz, f_in = _lookup(grid, grid[ELEVATION], live_nodes[:, None, :] + fxy[None])
-    # Per foot the lowest of its samples (the foot may end up in the gap between two rocks),
-    # then the mean over the feet (the body follows the feet's plane); NaN if any is unknown.
-    fz = fz.astype(np.float64).reshape(len(live_nodes), 4, len(ring))
-    with np.errstate(invalid='ignore'):
-        ground = np.min(fz, axis=2).mean(axis=1)
+    if _kernel is not None:
+        top_max = np.empty(len(live_nodes))
+        ground = np.empty(len(live_nodes))
+        on_map = np.empty(len(live_nodes), dtype=bool)
+        _kernel.belly_and_ground(
+            np.ascontiguousarray(live_nodes), np.ascontiguousarray(bxy),
+            np.ascontiguousarray(fxy), len(ring), float(lo[0]), float(lo[1]),
+            float(grid.resolution_m), np.ascontiguousarray(top, dtype=np.float64),
+            np.ascontiguousarray(grid[ELEVATION], dtype=np.float64), top_max, ground, on_map)
+    else:
+        top_max, ground, on_map = _belly_and_ground(grid, top, live_nodes, bxy, fxy, len(ring))
     underside = robot.standing_height_m - 0.5 * float(robot.body_size_m[2])
     headroom = np.full(len(nodes), np.nan)
     headroom[live] = ground + underside - top_max    # NaN where no foot ground is known
     off_map = np.zeros(len(nodes), dtype=bool)
-    off_map[live] = ~(t_in.all(axis=1) & f_in.all(axis=1))
+    off_map[live] = ~on_map
     headroom[off_map] = np.nan
     rock = (np.isfinite(headroom) & (headroom < s.clearance_m)) | outside
     blocked = rock | off_map

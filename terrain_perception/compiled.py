@@ -1,8 +1,8 @@
 """Optional compiled (numba) kernels: one loader for every module that has them.
 
-Each kernel module (``_ik_kernel``, ``_mapping_kernels``, ``_patch_kernels``) repeats a numpy
-reference in compiled form; an environment variable set to 0/false/no/off selects the numpy
-code, and so does a missing numba (logged once, at import).
+Each kernel module (``_ik_kernel``, ``_mapping_kernels``, ``_patch_kernels``,
+``_body_path_kernel``) repeats a numpy reference in compiled form; an environment variable set
+to 0/false/no/off selects the numpy code, and so does a missing numba (logged once, at import).
 """
 
 from __future__ import annotations

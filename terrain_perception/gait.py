@@ -100,7 +100,8 @@ def project_into_support(point_xy: np.ndarray, support_xy: np.ndarray,
     if len(verts) < 3 or not np.all(inside):
         # The margin does not fit: take the point of maximum margin (a small LP over the
         # edge lines; for a triangle it is the incentre).
-        return _deepest_point(poly, n), float(support_margin(_deepest_point(poly, n), poly))
+        deepest = _deepest_point(poly, n)
+        return deepest, float(support_margin(deepest, poly))
     inset = convex_order(verts)
     # Nearest point on the inset polygon's boundary.
     a = inset

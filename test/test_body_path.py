@@ -214,3 +214,56 @@ def test_the_body_path_is_searched_once_per_map_pose_and_goal(monkeypatch):
     planner.plan(T, np.array([1.5, 0.0]), feet=feet)
     assert len(calls) == 2
     np.testing.assert_allclose(planner.body_path.points, first.points)
+
+
+@pytest.mark.parametrize('robot_name', ['littledog', 'frog'])
+def test_the_compiled_headroom_kernel_equals_the_numpy_code(robot_name):
+    """_body_path_kernel.belly_and_ground against body_path._belly_and_ground: bitwise equal
+    maxima under the belly and ground under the feet, NaN where a foot's ground is unknown, and
+    the same on-map test, for body positions on, across and off the map's border."""
+    from terrain_perception import _body_path_kernel as kernel
+    from terrain_perception import body_path as bp
+    robot = load_robot_model(robot_name)
+    rng = np.random.default_rng(3)
+    h = rng.uniform(0.0, 0.12, (260, 200)).astype(np.float32)
+    h[rng.random(h.shape) < 0.05] = np.nan              # unknown cells
+    g = _grid(h)
+    belly, spacing = bp.belly_samples(robot)
+    top = bp.top_field(g, spacing)
+    lo = np.asarray(g.origin_xy, dtype=np.float64)
+    nodes = lo + rng.uniform(-0.2, 1.0, (3000, 2)) * np.asarray(g.length_xy)
+    ring = float(robot.foot_radius_m) * np.array([[0, 0], [1, 0], [-1, 0], [0, 1], [0, -1]])
+    for heading in (0.0, 0.4, -2.0):
+        c, s = np.cos(heading), np.sin(heading)
+        R = np.array([[c, -s], [s, c]])
+        bxy = belly[:, :2] @ R.T
+        fxy = (np.asarray(robot.nominal_feet)[:, None, :2] + ring[None]).reshape(-1, 2) @ R.T
+        want_top, want_ground, want_on = bp._belly_and_ground(g, top, nodes, bxy, fxy, 5)
+        got_top, got_ground = np.empty(len(nodes)), np.empty(len(nodes))
+        got_on = np.empty(len(nodes), dtype=bool)
+        kernel.belly_and_ground(nodes, bxy, fxy, 5, lo[0], lo[1], g.resolution_m, top,
+                                np.ascontiguousarray(g['elevation'], dtype=np.float64),
+                                got_top, got_ground, got_on)
+        np.testing.assert_array_equal(got_on, want_on)
+        assert 0.2 < want_on.mean() < 0.9          # both on- and off-map positions tested
+        on = want_on
+        np.testing.assert_array_equal(got_top[on], want_top[on])
+        np.testing.assert_array_equal(got_ground[on], want_ground[on])   # NaNs in place too
+        assert np.isnan(want_ground[on]).any() and np.isfinite(want_ground[on]).any()
+
+
+def test_the_body_path_is_the_same_with_and_without_the_compiled_kernel():
+    h, _, _ = _field(rock_h=0.11)
+    g = _grid(h)
+    from terrain_perception import body_path as bp
+    try:
+        paths = []
+        for on in (False, True):
+            bp.use_compiled_kernel(on)
+            paths.append(plan_body_path(g, ROBOT, [0.0, 0.05], [1.6, 0.0], 0.0,
+                                        corridor=(np.array([0.0, 0.0]), np.array([1.6, 0.0]),
+                                                  0.3)))
+    finally:
+        bp.use_compiled_kernel(None)
+    np.testing.assert_array_equal(paths[0].points, paths[1].points)
+    assert paths[0].blocked == paths[1].blocked > 0
