@@ -211,6 +211,13 @@ class MapperConfig:
         '[m] below a cell the fine map has already observed, in the last half of its length: '
         'the ray could not have got through that ground (a stereo mismatch far below the '
         'terrain); 0 = no check', 0.0, 1.0)
+    max_height_above_base_m: float = param(
+        0.0, 'a point more than this [m] above the body origin (map z, gravity up) is not '
+        'fused: what the robot steps on or passes under lies below its body, and points up at '
+        'the camera\'s height are stereo mismatches at the near end of the disparity search '
+        'in the top image rows, where the floor is far (phantom cells 12-20 cm high on '
+        'LittleDog\'s rocks-6cm maps, 40-70 cm on FROG-I\'s stones); 100 = no check',
+        -1.0, 100.0)
     recenter_distance_m: float = param(0.5, 'move the maps when the robot is this far [m] '
                                        'from the fine map centre', 0.0, 100.0)
     max_capture_poses: int = param(200, 'capture poses kept with the map', 1, 100000)
@@ -1509,14 +1516,18 @@ class IcpMapper:
         self._recenter(T_map_base[:3, 3])
         # the capture in the map frame, once (rows are selected below, not re-transformed)
         fine_map = transform_points(T_map_camera, fine_camera)
-        ok = None                                  # rows that passed the line-of-sight test
+        ok = None                 # rows that passed the height and line-of-sight tests
+        high = fine_map[:, 2] > T_map_base[2, 3] + c.max_height_above_base_m
+        if high.any():
+            self.counters['points_above_body'] += int(high.sum())
+            ok = ~high
         if c.line_of_sight_tolerance_m > 0:
             # before this capture is added: its own points do not vouch for each other
             bad = self.fine.rays_below(fine_map, T_map_camera[:3, 3],
                                        c.line_of_sight_tolerance_m)
             if bad.any():
                 self.counters['points_below_line_of_sight'] += int(bad.sum())
-                ok = ~bad
+                ok = ~bad if ok is None else ok & ~bad
         # rows are gathered once per use (by combined masks) from the camera depths
         z_cam = fine_camera[:, 2]
         near = z_cam <= c.fine_max_range_m

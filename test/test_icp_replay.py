@@ -54,3 +54,23 @@ def test_suite_compares_the_config_with_candidate_parameters(tmp_path, monkeypat
     Args.param = ['degeneracy_noise_gain=3']
     with pytest.raises(ValueError, match='NAME:=VALUE'):
         icp_replay.run(Args())
+
+
+def test_the_final_map_is_scored_against_the_true_terrain():
+    """_map_figures: RMSE on observed cells and the cells standing more than 5 cm above
+    (phantoms) or below (pits) the terrain the bag recorded."""
+    import numpy as np
+    from terrain_perception.grid import GridMap
+    from terrain_ros.conversions import grid_to_msg
+    from terrain_ros.tools.icp_replay import _map_figures
+    truth = GridMap(0.01, (0.0, 0.0), (40, 40), {'elevation': np.zeros((40, 40), np.float32)})
+    h = np.full((20, 20), 0.002, np.float32)
+    h[3, 4], h[5, 6], h[7, 8] = 0.19, 0.12, -0.08          # two phantoms, one pit
+    h[10:, :] = np.nan                                      # unobserved
+    fine = GridMap(0.01, (0.1, 0.1), (20, 20), {'elevation': h})
+    f = _map_figures(fine, grid_to_msg(truth, 0.0))
+    assert f['map_cells'] == 200
+    assert f['map_cells_above_5cm'] == 2 and f['map_cells_below_5cm'] == 1
+    want = np.sqrt((197 * 0.002 ** 2 + 0.19 ** 2 + 0.12 ** 2 + 0.08 ** 2) / 200)
+    assert f['map_rmse_m'] == pytest.approx(want, rel=1e-4)
+    assert _map_figures(fine, None) == {} and _map_figures(None, grid_to_msg(truth, 0.0)) == {}

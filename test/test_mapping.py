@@ -482,6 +482,41 @@ def test_points_seen_through_known_ground_are_not_fused(terrain):
     assert results[0.0][0] > 0.03 and results[0.0][1] == 0, results
 
 
+
+def test_points_above_the_body_are_not_fused(terrain):
+    """Stereo mismatches at the near end of the disparity search: in the top image rows, where
+    the floor is far, a patch of pixels matched too close puts points a few centimetres under
+    the camera (the 12-20 cm phantom cells of LittleDog's rocks-6cm loop maps). Above the
+    body origin they are not fused, the cells keep no phantom; with the check off (100 m)
+    they stand 10+ cm above the terrain."""
+    g, scene = terrain
+    results = {}
+    for limit in (0.0, 100.0):
+        m = mp.IcpMapper(dataclasses.replace(CONFIG, max_height_above_base_m=limit,
+                                             isolated_max_count=0), T_BC)
+        full = cloud_at(scene, T0)
+        h, w = full.shape[:2]
+        cloud = full.copy()
+        patch = np.s_[2:8, w // 2 - 4:w // 2 + 4]          # top rows: far floor
+        unit = full[patch] / np.linalg.norm(full[patch], axis=-1, keepdims=True)
+        cloud[patch] = 0.12 * unit                           # 12 cm from the camera
+        cam_T = T0 @ T_BC
+        bad_world = cloud[patch].reshape(-1, 3) @ cam_T[:3, :3].T + cam_T[:3, 3]
+        assert np.all(bad_world[:, 2] > T0[2, 3])           # above the body origin
+        fine, src = m.prepare(cloud)
+        m.fuse(fine, src, cam_T, T0, 0.0)
+        got = m.fine_grid().sample(ELEVATION, bad_world[:, :2])
+        truth = rc.interpolate_height(g, bad_world[:, :2])
+        err = got - truth
+        results[limit] = (float(np.nanmax(err)) if np.isfinite(err).any() else None,
+                          int(m.counters['points_above_body']))
+        # the rest of the capture is fused either way
+        assert np.isfinite(m.fine_grid()[ELEVATION]).sum() > 500
+    n_bad = 6 * 8
+    assert results[0.0][1] == n_bad, results
+    assert results[0.0][0] is None or results[0.0][0] < 0.01, results
+    assert results[100.0][1] == 0 and results[100.0][0] > 0.1, results
+
 def _noisy_capture(rng, n, origin=(0.0, 0.0), size=(0.6, 0.5)):
     """Seeded scene for the fine-map kernels: a sloped, bumpy surface with noise, samples off
     the window, a few gross outliers (the cell gate drops them) and clustered cells."""

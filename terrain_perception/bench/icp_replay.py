@@ -21,6 +21,9 @@ the ratios are baseline / candidate of the yaw and position error RMS: a way to 
 parameter on recorded runs in seconds instead of closed-loop trials in minutes (the replay is
 open loop: the recorded dead reckoning does not react to the candidate's poses).
 
+Per variant it also prints the final fine map against the bag's true terrain: height RMSE on
+observed cells and the cells more than 5 cm above / below it (phantoms / pits).
+
 JSON: ``bags`` (path -> variant -> the tool's figures), ``yaw_rms_ratio`` (path -> baseline /
 default or candidate) and, with ``--param``, ``pos_rms_ratio`` and ``params``.
 """
@@ -68,7 +71,8 @@ def run(args) -> Dict:
     base_name, ours_name = list(variants)
     bags, ratios, pos_ratios = {}, {}, {}
     print(f'{"bag / variant":52s} {"accepted":>10s} {"yaw RMS":>8s} {"max":>6s} '
-          f'{"final":>6s} {"pos RMS cm":>10s} {"max":>6s} {"final":>6s}')
+          f'{"final":>6s} {"pos RMS cm":>10s} {"max":>6s} {"final":>6s} {"map mm":>7s} '
+          f'{"+5cm":>5s} {"-5cm":>5s}')
     for bag in args.bag:
         if not bag.is_dir():
             raise FileNotFoundError(f'bag directory {bag} does not exist')
@@ -79,7 +83,10 @@ def run(args) -> Dict:
             print(f'{str(bag)[-30:] + " " + name:52s} {f["accepted"]:>4d}/{f["captures"]:<5d} '
                   f'{f["yaw_err_deg_rms"]:8.2f} {f["yaw_err_deg_max"]:6.2f} '
                   f'{f["yaw_err_deg_final"]:6.2f} {100 * f["pos_err_m_rms"]:10.2f} '
-                  f'{100 * f["pos_err_m_max"]:6.2f} {100 * f["pos_err_m_final"]:6.2f}', flush=True)
+                  f'{100 * f["pos_err_m_max"]:6.2f} {100 * f["pos_err_m_final"]:6.2f} '
+                  + (f'{1000 * f["map_rmse_m"]:7.1f} {f["map_cells_above_5cm"]:5d} '
+                     f'{f["map_cells_below_5cm"]:5d}' if f.get('map_cells') else
+                     f'{"-":>7s} {"-":>5s} {"-":>5s}'), flush=True)
         base, ours = per[base_name], per[ours_name]
         ratios[str(bag)] = base['yaw_err_deg_rms'] / max(ours['yaw_err_deg_rms'], 1e-9)
         pos_ratios[str(bag)] = base['pos_err_m_rms'] / max(ours['pos_err_m_rms'], 1e-9)

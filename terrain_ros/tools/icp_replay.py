@@ -2,11 +2,16 @@
 mapper node's inputs from a ``terrain-demo`` bag, replayed into its callbacks in one process
 (no DDS, no spinning), each alignment compared with the bag's ``/ground_truth/odom``.
 
-The node is built with ``config/icp_mapper.yaml`` plus the ``--param`` overrides, and gets, in
+The node is built with ``config/icp_mapper.yaml``, the bag's robot (as ``pipeline_profile``
+infers it: the stereo baseline, else ``summary.json``; ``--param robot:=NAME`` overrides) and
+the ``--param`` overrides, and gets, in
 bag order, ``/odom/dead_reckoning``, ``/joint_states``, ``/imu/data``, ``/stereo/points_coarse``
 and ``/stereo/points``, exactly as its subscriptions would. Printed (and written as JSON):
 captures, accepted, yaw error RMS / max / final [deg] and position error RMS / max / final [m]
-of ``T_map_base`` against the ground truth nearest in time, and the counters.
+of ``T_map_base`` against the ground truth nearest in time, the counters, and, when the bag has
+``/ground_truth/terrain``, the final fine map (as the node publishes it) against the true
+terrain: height RMSE on observed cells and how many cells stand more than 5 cm above or below
+it (``map_*``; phantom cells from stereo mismatches show up in ``map_cells_above_5cm``).
 """
 
 from __future__ import annotations
@@ -29,6 +34,7 @@ INPUTS = {'/odom/dead_reckoning': 'nav_msgs/msg/Odometry',
           '/stereo/points_coarse': 'sensor_msgs/msg/PointCloud2',
           '/stereo/points': 'sensor_msgs/msg/PointCloud2'}
 TRUTH = '/ground_truth/odom'
+TERRAIN = '/ground_truth/terrain'
 
 
 def _yaw(T: np.ndarray) -> float:
@@ -50,6 +56,13 @@ def replay(bag: Path, params: list) -> dict:
         if need not in topics:
             raise ToolError(f'bag {str(bag)!r} has no {need} (a terrain-demo bag has)')
     ros = ['--ros-args', '--params-file', str(CONFIG_DIR / 'icp_mapper.yaml')]
+    robot = None
+    if not any(p.split(':=', 1)[0] == 'robot' for p in params):
+        # The camera mount places the clouds: the bag's robot, not the config file's default
+        # (a FROG-I bag through LittleDog's mount put the map 25 cm low).
+        from terrain_ros.tools.pipeline_profile import choose_robot
+        robot, _ = choose_robot(None, reader, bag)
+        ros += ['-p', f'robot:={robot}']
     for p in params:
         ros += ['-p', p]
     rclpy.init(args=[PROG, *ros])
@@ -66,9 +79,14 @@ def replay(bag: Path, params: list) -> dict:
         callbacks = {'/odom/dead_reckoning': node._on_odom,
                      '/joint_states': node._on_joint_state, '/imu/data': node._on_imu,
                      '/stereo/points_coarse': node._on_coarse, '/stereo/points': node._on_cloud}
-        gt_t, gt_T = [], []
-        conns = [c for c in reader.connections if c.topic in INPUTS or c.topic == TRUTH]
+        gt_t, gt_T, terrain = [], [], None
+        conns = [c for c in reader.connections if c.topic in INPUTS or c.topic in
+                 (TRUTH, TERRAIN)]
         for c, _, raw in reader.messages(connections=conns):
+            if c.topic == TERRAIN:
+                terrain = deserialize_message(bytes(raw),
+                                              message_class('terrain_msgs/msg/TerrainGrid'))
+                continue
             if c.topic == TRUTH:
                 m = deserialize_message(bytes(raw), message_class('nav_msgs/msg/Odometry'))
                 gt_t.append(stamp_to_sec(m.header.stamp))
@@ -76,6 +94,7 @@ def replay(bag: Path, params: list) -> dict:
                 continue
             callbacks[c.topic](deserialize_message(bytes(raw), message_class(INPUTS[c.topic])))
         counters = dict(node.mapper.counters)
+        fine = node.mapper.fine_grid(node.node_cfg.map_frame) if log else None
         node.destroy_node()
     finally:
         rclpy.try_shutdown()
@@ -93,7 +112,23 @@ def replay(bag: Path, params: list) -> dict:
             'yaw_err_deg_rms': float(np.sqrt(np.mean(y ** 2))), 'yaw_err_deg_max': float(y.max()),
             'yaw_err_deg_final': float(y[-1]),
             'pos_err_m_rms': float(np.sqrt(np.mean(p ** 2))), 'pos_err_m_max': float(p.max()),
-            'pos_err_m_final': float(p[-1]), 'counters': counters, 'params': list(params)}
+            'pos_err_m_final': float(p[-1]), 'counters': counters, 'params': list(params),
+            'robot': robot,
+            **_map_figures(fine, terrain)}
+
+
+def _map_figures(fine, terrain_msg) -> dict:
+    """The final fine map against the bag's true terrain (empty without it)."""
+    if fine is None or terrain_msg is None:
+        return {}
+    from terrain_ros.conversions import msg_to_grid
+    from terrain_ros.report import map_errors, observed_mask
+    err = map_errors(fine, msg_to_grid(terrain_msg), observed_mask(fine))
+    if err.size == 0:
+        return {'map_cells': 0}
+    return {'map_cells': int(err.size), 'map_rmse_m': float(np.sqrt(np.mean(err ** 2))),
+            'map_cells_above_5cm': int(np.sum(err > 0.05)),
+            'map_cells_below_5cm': int(np.sum(err < -0.05))}
 
 
 def main(argv=None) -> int:
@@ -116,6 +151,10 @@ def main(argv=None) -> int:
           f'{out["yaw_err_deg_final"]:.2f} deg; position error RMS '
           f'{100 * out["pos_err_m_rms"]:.2f} max {100 * out["pos_err_m_max"]:.2f} final '
           f'{100 * out["pos_err_m_final"]:.2f} cm')
+    if out.get('map_cells'):
+        print(f'final fine map: {out["map_cells"]} observed cells, height RMSE '
+              f'{1000 * out["map_rmse_m"]:.1f} mm, {out["map_cells_above_5cm"]} cells > 5 cm '
+              f'above the terrain, {out["map_cells_below_5cm"]} > 5 cm below')
     if args.json is not None:
         args.json.write_text(json.dumps(out, indent=2, default=float))
     return 0
