@@ -30,6 +30,15 @@ _SIG = types.void(_in_f8_2d, _in_f8_2d, _in_f8_2d, types.int64, types.float64, t
                   types.float64, _in_f8_2d, _in_f8_2d, _f8_1d, _f8_1d, _b1_1d)
 
 
+@njit(cache=True, nogil=True, error_model='numpy', inline='always')
+def _cell(x, y, ox, oy, res, ni, nj):
+    """Cell ``(i, j)`` of map point ``(x, y)`` as ``GridMap.world_to_index`` floors it, and
+    whether it lies on the ``ni`` x ``nj`` grid."""
+    i = int(math.floor((x - ox) / res))
+    j = int(math.floor((y - oy) / res))
+    return i, j, 0 <= i < ni and 0 <= j < nj
+
+
 @njit(_SIG, cache=True, nogil=True, error_model='numpy')
 def belly_and_ground(nodes, belly_xy, feet_xy, ring, ox, oy, res, top, elev,
                      top_max, ground, on_map):
@@ -45,9 +54,8 @@ def belly_and_ground(nodes, belly_xy, feet_xy, ring, ox, oy, res, top, elev,
         inside = True
         m = -math.inf
         for s in range(belly_xy.shape[0]):
-            i = int(math.floor(((x + belly_xy[s, 0]) - ox) / res))
-            j = int(math.floor(((y + belly_xy[s, 1]) - oy) / res))
-            if i < 0 or i >= ni or j < 0 or j >= nj:
+            i, j, on = _cell(x + belly_xy[s, 0], y + belly_xy[s, 1], ox, oy, res, ni, nj)
+            if not on:
                 inside = False
                 break
             v = top[i, j]
@@ -60,9 +68,8 @@ def belly_and_ground(nodes, belly_xy, feet_xy, ring, ox, oy, res, top, elev,
                 nan = False
                 for r in range(ring):
                     s = f * ring + r
-                    i = int(math.floor(((x + feet_xy[s, 0]) - ox) / res))
-                    j = int(math.floor(((y + feet_xy[s, 1]) - oy) / res))
-                    if i < 0 or i >= ni or j < 0 or j >= nj:
+                    i, j, on = _cell(x + feet_xy[s, 0], y + feet_xy[s, 1], ox, oy, res, ni, nj)
+                    if not on:
                         inside = False
                         break
                     v = elev[i, j]
