@@ -218,6 +218,10 @@ class IcpMapperNode(Node):
         n = np.linalg.norm(f)
         if not np.isfinite(n) or n < 1.0:
             self.counters.bump('bad_imu', f'IMU specific force {n:.2f} m/s^2 is not gravity-like')
+            if np.isfinite(n):
+                # Free fall: a slip or drop the leg odometry does not see; the next ICP
+                # correction may be larger than the drift guard allows (note_disturbance).
+                self.mapper.note_disturbance(stamp_to_sec(msg.header.stamp))
             return
         # at rest the accelerometer measures +g along "up"
         R_base_imu = np.asarray(self.robot.T_base_imu)[:3, :3]

@@ -159,6 +159,15 @@ class MapperConfig:
                                           0.0, 180.0)
     max_rotation_per_m_deg: float = param(8.0, 'extra rotation correction [deg] allowed per '
                                           'metre walked', 0.0, 360.0)
+    max_correction_disturbed_m: float = param(
+        0.08, 'correction [m] allowed from the first capture after a disturbance (the IMU '
+        'measured free fall: a slip or drop that leg odometry cannot see) until one is '
+        'accepted: on FROG-I\'s stones (seed 131) the body slid 48 mm off a stone, the drift '
+        'guard rejected the ICP\'s correction and after 10 rejections the model restarted at '
+        'the wrong pose; 0 = no exception', 0.0, 10.0)
+    max_rotation_disturbed_deg: float = param(
+        5.0, 'rotation correction [deg] allowed after a disturbance (see '
+        'max_correction_disturbed_m)', 0.0, 180.0)
     max_consecutive_rejections: int = param(10, 'after this many rejections in a row the '
                                             'coarse model is restarted from the next capture '
                                             'at its prior (lost: nothing left to align to)',
@@ -1217,6 +1226,7 @@ class IcpMapper:
         self._estimation = make_estimation(config)
         self._recent_rmse: Deque[float] = collections.deque(maxlen=20)
         self._rejections_in_a_row = 0
+        self._disturbed_at: Optional[float] = None   # see note_disturbance
         # (IMU attitude R_world_base, map pose) at the last accepted capture
         self._accepted_attitude: Optional[Tuple[np.ndarray, np.ndarray]] = None
 
@@ -1305,6 +1315,16 @@ class IcpMapper:
     def predict(self, T_odom_base: np.ndarray) -> np.ndarray:
         """Prior ``T_map_base`` from dead reckoning and the current correction."""
         return self.T_map_odom @ _check_T(T_odom_base, 'T_odom_base')
+
+    def note_disturbance(self, stamp_s: float) -> None:
+        """The body was disturbed at ``stamp_s`` in a way dead reckoning cannot see (the IMU
+        measured free fall: a foot slipped off a stone, the body dropped). Until an alignment
+        is accepted, corrections up to ``max_correction_disturbed_m`` /
+        ``max_rotation_disturbed_deg`` pass the drift guard."""
+        if not np.isfinite(stamp_s):
+            raise ValueError('disturbance stamp is not finite')
+        self._disturbed_at = float(stamp_s)
+        self.counters['disturbances'] += 1
 
     def update(self, cloud_camera: np.ndarray, T_odom_base: np.ndarray, stamp_s: float,
                coarse_camera: Optional[np.ndarray] = None,
@@ -1453,6 +1473,10 @@ class IcpMapper:
         walked = self._walked_since_accept_m
         allowed_m = c.max_correction_floor_m + c.max_correction_per_m * walked
         allowed_rad = np.radians(c.max_rotation_floor_deg + c.max_rotation_per_m_deg * walked)
+        disturbed = self._disturbed_at is not None
+        if disturbed:
+            allowed_m = max(allowed_m, c.max_correction_disturbed_m)
+            allowed_rad = max(allowed_rad, np.radians(c.max_rotation_disturbed_deg))
         reason = ''
         if fitness < c.min_fitness:
             reason = f'fitness {fitness:.2f} < {c.min_fitness:.2f}'
@@ -1484,6 +1508,8 @@ class IcpMapper:
             return upd
         self._rejections_in_a_row = 0
         self.counters['accepted'] += 1
+        if disturbed:
+            self.counters['accepted_after_disturbance'] += 1
         if n_degenerate:
             # partial update: ICP only along the constrained directions, prior elsewhere
             self.counters['degenerate_alignments'] += 1
@@ -1506,6 +1532,7 @@ class IcpMapper:
                 attitude: Optional[np.ndarray] = None) -> None:
         self.T_map_odom = T_map_base @ invert(T_odom_base)
         self._walked_since_accept_m = 0.0
+        self._disturbed_at = None
         self._accepted_attitude = (None if attitude is None
                                    else (attitude.copy(), T_map_base.copy()))
 

@@ -222,3 +222,25 @@ def test_node_does_not_map_the_robots_own_legs(ros_context, executor, world):
         h.io.destroy_node()
     assert spikes[True] < 0.005, spikes
     assert spikes[False] > 0.03, spikes
+
+
+def test_free_fall_on_the_imu_is_a_disturbance_for_the_mapper(ros_context, executor, world):
+    """An IMU sample measuring free fall (specific force ~0) tells the mapper the body moved
+    in a way dead reckoning cannot see; a non-finite sample is only counted as bad."""
+    from sensor_msgs.msg import Imu
+    h = Harness(ros_context, executor)
+    m = h.node.mapper
+
+    def imu(t, a):
+        msg = Imu()
+        msg.header.stamp = sec_to_stamp(t)
+        msg.linear_acceleration.x, msg.linear_acceleration.y, msg.linear_acceleration.z = a
+        msg.orientation.w = 1.0
+        h.node._on_imu(msg)
+    imu(1.0, (0.0, 0.0, 9.81))
+    assert m.counters['disturbances'] == 0 and h.node.counters['bad_imu'] == 0
+    imu(1.1, (float('nan'), 0.0, 9.81))
+    assert m.counters['disturbances'] == 0 and h.node.counters['bad_imu'] == 1
+    imu(1.2, (0.1, 0.05, 0.1))
+    assert m.counters['disturbances'] == 1 and h.node.counters['bad_imu'] == 2
+    assert m._disturbed_at == pytest.approx(1.2)

@@ -138,6 +138,32 @@ def test_alignment_forced_into_a_wrong_minimum_is_rejected():
     np.testing.assert_array_equal(m.capture_poses()[1], poses)
 
 
+
+def test_after_a_disturbance_the_slip_the_icp_measures_is_accepted(terrain):
+    """The body slid 4 cm (a foot off a stone) while dead reckoning says it stood still. The
+    drift guard rejects the ICP's 4 cm correction; after the IMU reported free fall
+    (note_disturbance) the same capture is accepted at the true pose, once: the next capture
+    is guarded as before."""
+    _, scene = terrain
+    truth = make_T(np.eye(3), [0.04, 0.0, 0.0]) @ T1
+    results = {}
+    for disturbed in (False, True):
+        m = first_mapper(scene)
+        if disturbed:
+            m.note_disturbance(0.5)
+        u = m.update(cloud_at(scene, truth), T1, 1.0)
+        results[disturbed] = (u.accepted, pose_error(u.T_map_base, truth)[0],
+                              m.counters['accepted_after_disturbance'], m)
+    assert not results[False][0] and results[False][1] > 0.035
+    accepted, err, n, m = results[True]
+    assert accepted and err < 2e-3 and n == 1, results[True][:3]
+    # the exception is spent: a second slip without a disturbance is refused again
+    again = make_T(np.eye(3), [0.04, 0.0, 0.0]) @ truth
+    u = m.update(cloud_at(scene, again), T1, 2.0)           # odometry: still standing
+    assert not u.accepted and 'correction' in u.reason
+    with pytest.raises(ValueError, match='not finite'):
+        m.note_disturbance(float('nan'))
+
 def test_misfit_alignments_rejected_by_fitness_and_by_residual(terrain):
     _, scene = terrain
     loose = dataclasses.replace(CONFIG, max_correction_floor_m=10.0,
