@@ -113,7 +113,9 @@ def replay(bag: Path, params: list) -> dict:
             'yaw_err_deg_final': float(y[-1]),
             'pos_err_m_rms': float(np.sqrt(np.mean(p ** 2))), 'pos_err_m_max': float(p.max()),
             'pos_err_m_final': float(p[-1]), 'counters': counters, 'params': list(params),
-            'robot': robot,
+            'robot': robot, 'series': {'t_s': [float(t) for t, _, _ in log],
+                                       'yaw_err_deg': [float(v) for v in y],
+                                       'pos_err_m': [float(v) for v in p]},
             **_map_figures(fine, terrain)}
 
 
