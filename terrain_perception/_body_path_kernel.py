@@ -79,8 +79,8 @@ def belly_and_ground(nodes, belly_xy, feet_xy, ring, ox, oy, res, top, elev,
                         lo = v
                 if not inside:
                     break
-                total = (total + (math.nan if nan else lo)) if f > 0 else \
-                    (math.nan if nan else lo)
+                foot = math.nan if nan else lo
+                total = foot if f == 0 else total + foot
         top_max[k] = m
         ground[k] = total / nf
         on_map[k] = inside

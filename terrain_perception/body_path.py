@@ -43,9 +43,15 @@ from terrain_perception.grid import ELEVATION, GridMap
 from terrain_perception.robot_model import RobotModel
 
 _LOG = logging.getLogger(__name__)
-# The compiled headroom gathers (terrain_perception._body_path_kernel), or None for the numpy
-# code (TERRAIN_BODY_PATH_NUMBA=0, or numba missing: logged once).
-_kernel = load_compiled('_body_path_kernel', 'TERRAIN_BODY_PATH_NUMBA', 'body path', _LOG)
+
+
+def _load_kernel():
+    """The compiled headroom gathers (terrain_perception._body_path_kernel), or None for the
+    numpy code (``TERRAIN_BODY_PATH_NUMBA=0``, or numba missing: logged once)."""
+    return load_compiled('_body_path_kernel', 'TERRAIN_BODY_PATH_NUMBA', 'body path', _LOG)
+
+
+_kernel = _load_kernel()
 
 
 def use_compiled_kernel(enabled: Optional[bool] = True) -> bool:
@@ -54,7 +60,7 @@ def use_compiled_kernel(enabled: Optional[bool] = True) -> bool:
     whether the compiled kernel is now used."""
     global _kernel
     if enabled is None:
-        _kernel = load_compiled('_body_path_kernel', 'TERRAIN_BODY_PATH_NUMBA', 'body path', _LOG)
+        _kernel = _load_kernel()
     elif enabled:
         from terrain_perception import _body_path_kernel
         _kernel = _body_path_kernel
