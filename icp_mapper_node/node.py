@@ -133,6 +133,7 @@ class IcpMapperNode(Node):
         self._up_base: Optional[np.ndarray] = None
         self._fine_stamp = None  # stamp of a fused map not yet published
         self.captures = 0
+        self._confirmed_logged = 0       # mapper counter accepted_confirmed already logged
         self._joints: Deque[tuple] = deque(maxlen=2000)   # (stamp [s], q (4, 3))
         self._joint_t: Deque[float] = deque(maxlen=2000)  # the same stamps, for np.fromiter
         self._pose_msgs = ConvertOnce(lambda tT: (float(tT[0]), tT[1].tobytes()),
@@ -275,6 +276,13 @@ class IcpMapperNode(Node):
         self.captures += 1
         if not res.accepted:
             self.counters.bump('rejected_alignment', res.reason)
+        elif self.mapper.counters['accepted_confirmed'] > self._confirmed_logged:
+            self._confirmed_logged = self.mapper.counters['accepted_confirmed']
+            self.get_logger().warn(
+                f'accepted a {res.correction_m * 1e3:.0f} mm / {res.correction_deg:.1f} deg '
+                f'correction the drift guard had refused: '
+                f'{self.mapper_cfg.confirm_captures} captures in a row measured it (a slip '
+                f'dead reckoning missed)')
         self._publish(res, msg.header.stamp)
 
     # ------------------------------------------------------------------ outputs

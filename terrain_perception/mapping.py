@@ -168,6 +168,26 @@ class MapperConfig:
     max_rotation_disturbed_deg: float = param(
         5.0, 'rotation correction [deg] allowed after a disturbance (see '
         'max_correction_disturbed_m)', 0.0, 180.0)
+    confirm_captures: int = param(
+        3, 'a correction the drift guard refused is accepted when this many captures in a row '
+        '(captures refused as misfits skipped) measured the same one (the shift and turn from '
+        'the prior to ICP\'s pose, map frame, within confirm_tolerance_m / '
+        'confirm_tolerance_deg), at their mean: a slip the IMU did not see as free fall leaves '
+        'dead reckoning off by a constant that every later capture measures again, where a '
+        'mismatch moves with the view; 0 = off', 0, 1000)
+    confirm_tolerance_m: float = param(
+        0.02, 'agreement of the confirming corrections [m]: replayed with a 5 cm slip, '
+        'LittleDog\'s ICP put its y within 15 mm and its yaw within 1.7 deg from capture to '
+        'capture (a y-yaw cost valley)', 0.0, 1.0)
+    confirm_tolerance_deg: float = param(2.0, 'agreement of their rotations [deg]', 0.0, 180.0)
+    confirm_min_travel_m: float = param(
+        0.02, 'dead reckoning must have moved this far over the confirming captures [m]: a body '
+        'standing still sees the same view, and a wrong minimum (a periodic pattern) repeats '
+        'with it', 0.0, 10.0)
+    max_correction_confirmed_m: float = param(0.10, 'largest correction [m] confirmation '
+                                              'accepts', 0.0, 10.0)
+    max_rotation_confirmed_deg: float = param(6.0, 'largest rotation correction [deg] '
+                                              'confirmation accepts', 0.0, 180.0)
     max_consecutive_rejections: int = param(10, 'after this many rejections in a row the '
                                             'coarse model is restarted from the next capture '
                                             'at its prior (lost: nothing left to align to)',
@@ -1227,6 +1247,9 @@ class IcpMapper:
         self._recent_rmse: Deque[float] = collections.deque(maxlen=20)
         self._rejections_in_a_row = 0
         self._disturbed_at: Optional[float] = None   # see note_disturbance
+        # (correction T_base T_prior^-1, T_odom_base) of the refused corrections in a row
+        self._refused: Deque[Tuple[np.ndarray, np.ndarray]] = collections.deque(
+            maxlen=max(config.confirm_captures, 1))
         # (IMU attitude R_world_base, map pose) at the last accepted capture
         self._accepted_attitude: Optional[Tuple[np.ndarray, np.ndarray]] = None
 
@@ -1405,6 +1428,7 @@ class IcpMapper:
             self._tree = None
             self._recent_rmse.clear()
             self._rejections_in_a_row = 0
+            self._refused.clear()
             self.counters['model_restarted'] += 1
             n_model = 0
         if n_model == 0:
@@ -1477,7 +1501,7 @@ class IcpMapper:
         if disturbed:
             allowed_m = max(allowed_m, c.max_correction_disturbed_m)
             allowed_rad = max(allowed_rad, np.radians(c.max_rotation_disturbed_deg))
-        reason = ''
+        reason, drift = '', ''     # drift: the counter of a drift-guard refusal
         if fitness < c.min_fitness:
             reason = f'fitness {fitness:.2f} < {c.min_fitness:.2f}'
             self.counters['rejected_fitness'] += 1
@@ -1488,16 +1512,31 @@ class IcpMapper:
         elif corr_m > allowed_m:
             reason = (f'correction {corr_m * 1e3:.0f} mm exceeds the expected drift '
                       f'{allowed_m * 1e3:.0f} mm')
-            self.counters['rejected_correction'] += 1
+            drift = 'rejected_correction'
         elif corr_rad > allowed_rad:
             reason = (f'rotation correction {np.degrees(corr_rad):.1f} deg exceeds the expected '
                       f'drift {np.degrees(allowed_rad):.1f} deg')
-            self.counters['rejected_rotation'] += 1
-        elif up is not None and c.max_level_error_deg > 0:
-            tilt = np.degrees(np.arccos(np.clip((T_cam[:3, :3] @ up)[2], -1.0, 1.0)))
-            if tilt > c.max_level_error_deg:
-                reason = f'tilt {tilt:.1f} deg away from the roll/pitch prior'
-                self.counters['rejected_level'] += 1
+            drift = 'rejected_rotation'
+        level = self._level_error(T_cam, up) if not reason or drift else ''
+        if level and not reason:
+            reason = level
+            self.counters['rejected_level'] += 1
+        confirmed = False
+        if drift:
+            confirmed = not level and self._confirmed(T_base, T_prior, T_odom_base, corr_m,
+                                                      corr_rad)
+            if confirmed:
+                # the runs' corrections are measurements of one offset: their mean, on this
+                # capture's prior, averages out ICP's scatter along its cost valleys
+                reason = ''
+                T_base = self._mean_correction() @ T_prior
+                T_cam = T_base @ self.T_base_camera
+                corr_m = float(np.linalg.norm(T_base[:3, 3] - T_prior[:3, 3]))
+                corr_rad = angle_between(T_base[:3, :3], T_prior[:3, :3])
+            else:
+                self.counters[drift] += 1
+        # a misfit (fitness, residual, level) says nothing about the correction: it neither
+        # extends nor breaks a run of refused corrections; an accepted capture ends it
         upd = MapperUpdate(not reason, False, reason, T_base, T_cam, T_prior,
                            self.T_map_odom.copy(), float(fitness), rmse,
                            corr_m, float(np.degrees(corr_rad)), len(src.points), n_model,
@@ -1508,8 +1547,11 @@ class IcpMapper:
             return upd
         self._rejections_in_a_row = 0
         self.counters['accepted'] += 1
+        self._refused.clear()
         if disturbed:
             self.counters['accepted_after_disturbance'] += 1
+        if confirmed:
+            self.counters['accepted_confirmed'] += 1
         if n_degenerate:
             # partial update: ICP only along the constrained directions, prior elsewhere
             self.counters['degenerate_alignments'] += 1
@@ -1518,6 +1560,57 @@ class IcpMapper:
         self._accept(T_base, T_odom_base, attitude)
         upd.T_map_odom = self.T_map_odom.copy()
         return upd
+
+    def _level_error(self, T_map_camera: np.ndarray, up: Optional[np.ndarray]) -> str:
+        """The reason an alignment fails ``max_level_error_deg`` ('' when it passes or there
+        is no roll/pitch prior)."""
+        c = self.config
+        if up is None or c.max_level_error_deg <= 0:
+            return ''
+        tilt = np.degrees(np.arccos(np.clip((T_map_camera[:3, :3] @ up)[2], -1.0, 1.0)))
+        return (f'tilt {tilt:.1f} deg away from the roll/pitch prior'
+                if tilt > c.max_level_error_deg else '')
+
+    def _confirmed(self, T_map_base: np.ndarray, T_prior: np.ndarray, T_odom_base: np.ndarray,
+                   corr_m: float, corr_rad: float) -> bool:
+        """Record a correction the drift guard refused; True when it is the
+        ``confirm_captures``-th in a row to measure the same correction (see
+        ``MapperConfig.confirm_captures``) and within the confirmed maxima.
+
+        The correction is compared in the map frame (``T_map_base T_prior^-1``: the shift and
+        turn that take the prior to ICP's pose), not as a map-from-odometry transform, whose
+        translation a small turn swings by the odometry's distance from its origin."""
+        c = self.config
+        if c.confirm_captures <= 0:
+            return False
+        cand = np.eye(4)
+        cand[:3, :3] = T_map_base[:3, :3] @ T_prior[:3, :3].T
+        cand[:3, 3] = T_map_base[:3, 3] - T_prior[:3, 3]
+        if self._refused and not self._agree(self._refused[-1][0], cand):
+            self._refused.clear()       # a new offset starts a new run
+        self._refused.append((cand, T_odom_base.copy()))
+        if len(self._refused) < c.confirm_captures:
+            return False
+        if not all(self._agree(T, cand) for T, _ in self._refused):
+            return False
+        travel = float(np.linalg.norm(self._refused[-1][1][:3, 3] - self._refused[0][1][:3, 3]))
+        return (travel >= c.confirm_min_travel_m and corr_m <= c.max_correction_confirmed_m
+                and corr_rad <= np.radians(c.max_rotation_confirmed_deg))
+
+    def _mean_correction(self) -> np.ndarray:
+        """The mean of the recorded refused corrections (translation mean, rotation by
+        :meth:`scipy.spatial.transform.Rotation.mean`), as a 4x4 acting on a map pose."""
+        C = np.array([T for T, _ in self._refused])
+        out = np.eye(4)
+        out[:3, :3] = Rotation.from_matrix(C[:, :3, :3]).mean().as_matrix()
+        out[:3, 3] = C[:, :3, 3].mean(axis=0)
+        return out
+
+    def _agree(self, A: np.ndarray, B: np.ndarray) -> bool:
+        c = self.config
+        return bool(np.linalg.norm(A[:3, 3] - B[:3, 3]) <= c.confirm_tolerance_m
+                    and angle_between(A[:3, :3], B[:3, :3])
+                    <= np.radians(c.confirm_tolerance_deg))
 
     def _plane_rmse(self, src: o3d.geometry.PointCloud, T_map_camera: np.ndarray,
                     corr: np.ndarray) -> float:

@@ -164,6 +164,49 @@ def test_after_a_disturbance_the_slip_the_icp_measures_is_accepted(terrain):
     with pytest.raises(ValueError, match='not finite'):
         m.note_disturbance(float('nan'))
 
+def _slip_walk(scene, config, slips, step_m=0.015):
+    """Captures along a walk in +x whose dead reckoning misses ``slips[i]`` [m] of x motion
+    (a slip the IMU did not see): ``(mapper, [(update, true pose), ...])``."""
+    m = first_mapper(scene, config)
+    out = []
+    for i, slip in enumerate(slips, start=1):
+        odom = make_T(np.eye(3), [step_m * i, 0.0, 0.0]) @ T1
+        truth = make_T(np.eye(3), [slip, 0.0, 0.0]) @ odom
+        out.append((m.update(cloud_at(scene, truth), odom, float(i)), truth))
+    return m, out
+
+
+def test_a_slip_measured_by_three_captures_in_a_row_is_accepted(terrain):
+    """Dead reckoning missed a 4 cm slide and no IMU saw it. The drift guard refuses the
+    ICP's 4 cm correction; the third capture in a row that measures the same offset is
+    accepted at the true pose (confirm_captures 3), and the next one is aligned normally. With
+    confirmation off all of them are refused."""
+    _, scene = terrain
+    m, ups = _slip_walk(scene, CONFIG, [0.04] * 4)
+    assert [u.accepted for u, _ in ups] == [False, False, True, True], [u.reason for u, _ in ups]
+    assert 'correction' in ups[0][0].reason and m.counters['accepted_confirmed'] == 1
+    for u, truth in ups[2:]:
+        assert pose_error(u.T_map_base, truth)[0] < 2e-3
+    assert ups[3][0].correction_m < 5e-3          # re-anchored: no correction needed any more
+    off, ups_off = _slip_walk(scene, dataclasses.replace(CONFIG, confirm_captures=0), [0.04] * 4)
+    assert not any(u.accepted for u, _ in ups_off)
+    assert off.counters['rejected_correction'] == 4 and off.counters['accepted_confirmed'] == 0
+
+
+def test_corrections_that_disagree_or_a_robot_standing_still_confirm_nothing(terrain):
+    """Corrections that move from capture to capture (3 cm apart, over the 2 cm tolerance) are not
+    a slip; the same offset seen from the same place (no travel) repeats any wrong minimum, so
+    it does not confirm either; nor does a slip larger than max_correction_confirmed_m."""
+    _, scene = terrain
+    m, ups = _slip_walk(scene, CONFIG, [0.04, 0.07, 0.04, 0.07])
+    assert not any(u.accepted for u, _ in ups) and m.counters['accepted_confirmed'] == 0
+    m, ups = _slip_walk(scene, CONFIG, [0.04] * 4, step_m=0.0)
+    assert not any(u.accepted for u, _ in ups) and m.counters['accepted_confirmed'] == 0
+    small = dataclasses.replace(CONFIG, max_correction_confirmed_m=0.03)
+    m, ups = _slip_walk(scene, small, [0.04] * 4)
+    assert not any(u.accepted for u, _ in ups) and m.counters['accepted_confirmed'] == 0
+
+
 def test_misfit_alignments_rejected_by_fitness_and_by_residual(terrain):
     _, scene = terrain
     loose = dataclasses.replace(CONFIG, max_correction_floor_m=10.0,
