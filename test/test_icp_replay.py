@@ -34,7 +34,7 @@ def test_suite_compares_the_config_with_candidate_parameters(tmp_path, monkeypat
     # ratios are baseline / candidate (the tool itself is stubbed: a bag is too large here).
     calls = []
 
-    def fake(bag, params):
+    def fake(bag, params, slip=None):
         calls.append(list(params))
         worse = not params
         return {'captures': 10, 'accepted': 10, 'yaw_err_deg_rms': 2.0 if worse else 1.0,
@@ -74,3 +74,27 @@ def test_the_final_map_is_scored_against_the_true_terrain():
     want = np.sqrt((197 * 0.002 ** 2 + 0.19 ** 2 + 0.12 ** 2 + 0.08 ** 2) / 200)
     assert f['map_rmse_m'] == pytest.approx(want, rel=1e-4)
     assert _map_figures(fine, None) == {} and _map_figures(None, grid_to_msg(truth, 0.0)) == {}
+
+
+def test_slip_option_is_checked_and_the_recovery_is_counted_from_the_slip(tmp_path):
+    import numpy as np
+    from terrain_ros.tools.common import ToolError
+    from terrain_ros.tools.icp_replay import _after_slip, parse_slip
+    assert parse_slip('40.5:0.05,-0.01') == (40.5, 0.05, -0.01)
+    for bad in ('40', '40:0.05', 'a:0.05,0', '40:nan,0'):
+        with pytest.raises(ToolError, match='--slip'):
+            parse_slip(bad)
+    res = _tool(tmp_path, '--slip', '40:0.05')
+    assert res.returncode == 1 and 'expected T:DX,DY' in res.stderr
+    t = [10.0, 20.0, 30.0, 40.0, 50.0, 60.0]
+    err = np.array([0.002, 0.003, 0.05, 0.04, 0.008, 0.004])
+    f = _after_slip((25.0, 0.05, 0.0), t, err)
+    # captures after the slip: 0.05 0.04 0.008 0.004: under 2 cm from the third on
+    assert f['captures_after_slip'] == 4 and f['captures_to_recover'] == 3
+    assert _after_slip((5.0, 0.05, 0.0), t, err)['captures_to_recover'] == 5
+    assert _after_slip((45.0, 0.05, 0.0), t, err)['captures_to_recover'] == 1
+    assert f['pos_err_m_rms_after_slip'] == pytest.approx(
+        np.sqrt(np.mean(err[2:] ** 2)))
+    assert _after_slip((25.0, 0.05, 0.0), t, np.full(6, 0.05))['captures_to_recover'] is None
+    with pytest.raises(ToolError, match='no capture after it'):
+        _after_slip((70.0, 0.05, 0.0), t, err)

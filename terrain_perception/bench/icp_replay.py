@@ -24,6 +24,12 @@ open loop: the recorded dead reckoning does not react to the candidate's poses).
 Per variant it also prints the final fine map against the bag's true terrain: height RMSE on
 observed cells and the cells more than 5 cm above / below it (phantoms / pits).
 
+With ``--slip T:DX,DY`` every replay gets a slip its dead reckoning did not see (the tool's
+``--slip``: from bag time T on the odometry is moved by (-DX, -DY) m), and each variant also
+prints the position error RMS after the slip and the capture from which it stays under 2 cm
+(the tool's ``captures_to_recover``): the mapper's recovery from a slip no IMU reported, on
+real recorded clouds.
+
 JSON: ``bags`` (path -> variant -> the tool's figures), ``yaw_rms_ratio`` (path -> baseline /
 default or candidate) and, with ``--param``, ``pos_rms_ratio`` and ``params``.
 """
@@ -48,14 +54,19 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument('--param', action='append', default=[], metavar='NAME:=VALUE',
                    help='compare the config file (baseline) with it plus these mapper '
                         'parameters (repeatable) instead of the odometry / IMU rotation priors')
+    p.add_argument('--slip', default=None, metavar='T:DX,DY',
+                   help='inject a slip dead reckoning missed: from bag time T [s] on, move the '
+                        'odometry by (-DX, -DY) [m] in every replay')
 
 
-def _run_tool(bag: Path, params) -> dict:
+def _run_tool(bag: Path, params, slip=None) -> dict:
     with tempfile.TemporaryDirectory() as tmp:
         out = Path(tmp) / 'replay.json'
         cmd = [sys.executable, '-m', TOOL, str(bag), '--json', str(out)]
         for p in params:
             cmd += ['--param', p]
+        if slip is not None:
+            cmd += ['--slip', slip]
         res = subprocess.run(cmd, capture_output=True, text=True)
         if res.returncode != 0 or not out.is_file():
             raise ValueError(f'{TOOL} on {bag} failed: {res.stderr.strip()[-500:]}')
@@ -78,7 +89,7 @@ def run(args) -> Dict:
             raise FileNotFoundError(f'bag directory {bag} does not exist')
         per = {}
         for name, extra in variants.items():
-            f = _run_tool(bag, extra)
+            f = _run_tool(bag, extra, getattr(args, 'slip', None))
             per[name] = f
             print(f'{str(bag)[-30:] + " " + name:52s} {f["accepted"]:>4d}/{f["captures"]:<5d} '
                   f'{f["yaw_err_deg_rms"]:8.2f} {f["yaw_err_deg_max"]:6.2f} '
@@ -87,6 +98,12 @@ def run(args) -> Dict:
                   + (f'{1000 * f["map_rmse_m"]:7.1f} {f["map_cells_above_5cm"]:5d} '
                      f'{f["map_cells_below_5cm"]:5d}' if f.get('map_cells') else
                      f'{"-":>7s} {"-":>5s} {"-":>5s}'), flush=True)
+            if 'slip' in f:
+                rec = f['captures_to_recover']
+                print(f'{"":52s} after the slip: {f["captures_after_slip"]} captures, position '
+                      f'error RMS {100 * f["pos_err_m_rms_after_slip"]:.2f} cm, '
+                      + (f'under 2 cm from capture {rec} on' if rec else 'over 2 cm at the end'),
+                      flush=True)
         base, ours = per[base_name], per[ours_name]
         ratios[str(bag)] = base['yaw_err_deg_rms'] / max(ours['yaw_err_deg_rms'], 1e-9)
         pos_ratios[str(bag)] = base['pos_err_m_rms'] / max(ours['pos_err_m_rms'], 1e-9)
@@ -96,4 +113,6 @@ def run(args) -> Dict:
     out = {'bags': bags, 'yaw_rms_ratio': ratios}
     if params:
         out.update(pos_rms_ratio=pos_ratios, params=params)
+    if getattr(args, 'slip', None):
+        out['slip'] = args.slip
     return out

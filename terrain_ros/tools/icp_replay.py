@@ -12,6 +12,16 @@ of ``T_map_base`` against the ground truth nearest in time, the counters, and, w
 ``/ground_truth/terrain``, the final fine map (as the node publishes it) against the true
 terrain: height RMSE on observed cells and how many cells stand more than 5 cm above or below
 it (``map_*``; phantom cells from stereo mismatches show up in ``map_cells_above_5cm``).
+
+``--slip T:DX,DY`` injects a slip dead reckoning did not see: from bag time ``T`` [s] on, the
+odometry the node receives is moved by ``(-DX, -DY)`` [m] in the odometry frame, as if the body
+had slid by ``(DX, DY)`` under the legs (the camera clouds and the ground truth are the
+bag's). The offset grows linearly over ``SLIP_RAMP_S`` (a slide; a step would be refused by
+the node's odometry gate as a jump). The IMU is untouched, so no free fall is reported: it
+tests the mapper's recovery without the disturbance exception. The figures then also give the
+position error after ``T`` (``pos_err_m_rms_after_slip``; ``captures_to_recover``: counted
+from the first capture after ``T``, the capture from which the error stays under
+``RECOVERED_M`` to the end of the bag, None if the last one is over it).
 """
 
 from __future__ import annotations
@@ -35,13 +45,28 @@ INPUTS = {'/odom/dead_reckoning': 'nav_msgs/msg/Odometry',
           '/stereo/points': 'sensor_msgs/msg/PointCloud2'}
 TRUTH = '/ground_truth/odom'
 TERRAIN = '/ground_truth/terrain'
+SLIP_RAMP_S = 0.25
+RECOVERED_M = 0.02
 
 
 def _yaw(T: np.ndarray) -> float:
     return float(np.degrees(np.arctan2(T[1, 0], T[0, 0])))
 
 
-def replay(bag: Path, params: list) -> dict:
+def parse_slip(text: str) -> tuple:
+    """``'T:DX,DY'`` -> ``(T, DX, DY)``; ToolError naming the problem otherwise."""
+    try:
+        t, d = text.split(':', 1)
+        dx, dy = (float(v) for v in d.split(','))
+        out = (float(t), dx, dy)
+    except ValueError:
+        raise ToolError(f'--slip {text!r}: expected T:DX,DY (seconds, metres)') from None
+    if not all(np.isfinite(out)):
+        raise ToolError(f'--slip {text!r}: values must be finite')
+    return out
+
+
+def replay(bag: Path, params: list, slip: tuple = None) -> dict:
     import rclpy
     from rclpy.serialization import deserialize_message
     from terrain_ros.conversions import pose_to_matrix, stamp_to_sec
@@ -76,7 +101,15 @@ def replay(bag: Path, params: list) -> dict:
             log.append((t, res.accepted, res.T_map_base.copy()))
             return res
         node.mapper.update = logged
-        callbacks = {'/odom/dead_reckoning': node._on_odom,
+        on_odom = node._on_odom
+        if slip is not None:
+            def on_odom(msg, _cb=node._on_odom):
+                share = np.clip((stamp_to_sec(msg.header.stamp) - slip[0]) / SLIP_RAMP_S,
+                                0.0, 1.0)
+                msg.pose.pose.position.x -= share * slip[1]
+                msg.pose.pose.position.y -= share * slip[2]
+                _cb(msg)
+        callbacks = {'/odom/dead_reckoning': on_odom,
                      '/joint_states': node._on_joint_state, '/imu/data': node._on_imu,
                      '/stereo/points_coarse': node._on_coarse, '/stereo/points': node._on_cloud}
         gt_t, gt_T, terrain = [], [], None
@@ -108,7 +141,8 @@ def replay(bag: Path, params: list) -> dict:
         yaw_err.append(abs((_yaw(T) - _yaw(G) + 180.0) % 360.0 - 180.0))
         pos_err.append(float(np.hypot(*(T[:2, 3] - G[:2, 3]))))
     y, p = np.asarray(yaw_err), np.asarray(pos_err)
-    return {'captures': len(log), 'accepted': int(sum(a for _, a, _ in log)),
+    extra = {} if slip is None else _after_slip(slip, [t for t, _, _ in log], p)
+    return {**extra, 'captures': len(log), 'accepted': int(sum(a for _, a, _ in log)),
             'yaw_err_deg_rms': float(np.sqrt(np.mean(y ** 2))), 'yaw_err_deg_max': float(y.max()),
             'yaw_err_deg_final': float(y[-1]),
             'pos_err_m_rms': float(np.sqrt(np.mean(p ** 2))), 'pos_err_m_max': float(p.max()),
@@ -117,6 +151,19 @@ def replay(bag: Path, params: list) -> dict:
                                        'yaw_err_deg': [float(v) for v in y],
                                        'pos_err_m': [float(v) for v in p]},
             **_map_figures(fine, terrain)}
+
+
+def _after_slip(slip: tuple, t: list, pos_err: np.ndarray) -> dict:
+    after = np.asarray(t) >= slip[0]
+    if not after.any():
+        raise ToolError(f'--slip at {slip[0]:.1f} s: no capture after it '
+                        f'(the bag\'s captures end at {t[-1]:.1f} s)')
+    p = pos_err[after]
+    over = np.flatnonzero(p >= RECOVERED_M)
+    recover = 1 if over.size == 0 else (None if over[-1] == len(p) - 1 else int(over[-1]) + 2)
+    return {'slip': list(slip), 'captures_after_slip': int(after.sum()),
+            'pos_err_m_rms_after_slip': float(np.sqrt(np.mean(p ** 2))),
+            'captures_to_recover': recover}
 
 
 def _map_figures(fine, terrain_msg) -> dict:
@@ -139,13 +186,17 @@ def main(argv=None) -> int:
     ap.add_argument('--param', action='append', default=[], metavar='NAME:=VALUE',
                     help='icp_mapper parameter override (repeatable)')
     ap.add_argument('--json', type=Path, default=None, help='write the figures here')
+    ap.add_argument('--slip', default=None, metavar='T:DX,DY',
+                    help='from bag time T [s] on, move the dead reckoning by (-DX, -DY) [m]: '
+                         'a slip the legs did not see')
     args = ap.parse_args(argv)
     os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
     try:
         for p in args.param:
             if ':=' not in p:
                 raise ToolError(f'--param {p!r}: expected NAME:=VALUE')
-        out = replay(args.bag, args.param)
+        slip = None if args.slip is None else parse_slip(args.slip)
+        out = replay(args.bag, args.param, slip)
     except ToolError as exc:
         return fail(PROG, str(exc))
     print(f'{out["captures"]} captures, {out["accepted"]} accepted; yaw error RMS '
@@ -153,6 +204,12 @@ def main(argv=None) -> int:
           f'{out["yaw_err_deg_final"]:.2f} deg; position error RMS '
           f'{100 * out["pos_err_m_rms"]:.2f} max {100 * out["pos_err_m_max"]:.2f} final '
           f'{100 * out["pos_err_m_final"]:.2f} cm')
+    if 'slip' in out:
+        rec = out['captures_to_recover']
+        print(f'after the slip at {out["slip"][0]:.1f} s: {out["captures_after_slip"]} captures, '
+              f'position error RMS {100 * out["pos_err_m_rms_after_slip"]:.2f} cm, '
+              + (f'under {100 * RECOVERED_M:.0f} cm from capture {rec} on' if rec
+                 else f'still over {100 * RECOVERED_M:.0f} cm at the end'))
     if out.get('map_cells'):
         print(f'final fine map: {out["map_cells"]} observed cells, height RMSE '
               f'{1000 * out["map_rmse_m"]:.1f} mm, {out["map_cells_above_5cm"]} cells > 5 cm '
