@@ -79,6 +79,7 @@ class RunData:
     latencies_ms: List[float] = field(default_factory=list)
     latency_stages_ms: Dict[str, List[float]] = field(default_factory=dict)
     counts: Dict[str, int] = field(default_factory=dict)
+    node_counters: Dict[str, Dict[str, int]] = field(default_factory=dict)
     nodes: Dict[str, dict] = field(default_factory=dict)
     sim_time_s: float = 0.0
     wall_time_s: float = 0.0
@@ -540,6 +541,7 @@ def compute_summary(d: RunData, model=None, cost_cfg: CostConfig = CostConfig())
         missing['capture_to_plan_ms_median'] = 'no plan matched a captured image stamp'
     s['messages'] = dict(sorted(d.counts.items()))
     s['nodes'] = d.nodes
+    s['node_counters'] = d.node_counters
     s['complete_graph'] = bool(d.nodes) and all(
         n.get('state') == 'ran' for n in d.nodes.values())
     s['missing'] = missing
@@ -1020,6 +1022,17 @@ def format_summary(s: dict) -> str:
                             for k, v in s['latency_stages_ms'].items()) + ')'
            if s.get('latency_stages_ms') else ''),
     ]
+    icp = (s.get('node_counters') or {}).get('icp_mapper')
+    if icp:
+        def n(key):
+            return icp.get(f'mapper_{key}', 0)
+        lines.append(
+            f'  ICP decisions  {n("accepted")} accepted, refused: '
+            f'{n("rejected_correction") + n("rejected_rotation")} by the drift guard, '
+            f'{n("rejected_fitness") + n("rejected_rmse") + n("rejected_level")} as misfits; '
+            f'{n("accepted_confirmed")} confirmed by repeated captures, '
+            f'{n("accepted_after_disturbance")} after a free fall, '
+            f'{n("model_restarted")} model restarts')
     for fa in s.get('fall_analysis') or []:
         lines.append(f'  fall           {fa["text"]}')
     bad = {k: v for k, v in s.get('nodes', {}).items() if v.get('state') != 'ran'}

@@ -42,6 +42,34 @@ def test_summary_reports_the_per_node_latency_with_the_total():
     assert 'icp_mapper 350' in format_summary(s)
 
 
+def test_summary_carries_the_node_counters_and_prints_the_mappers_decisions():
+    d = RunData(CourseInfo('rocks-6cm', 0, 0.4, 1.0, 1.75, 2.15), 'littledog')
+    d.node_counters = {'icp_mapper': {'mapper_accepted': 290, 'mapper_rejected_correction': 7,
+                                      'mapper_rejected_rotation': 1, 'mapper_rejected_rmse': 4,
+                                      'mapper_accepted_confirmed': 2, 'odom_jump': 1},
+                       'stereo_node': {'bad_image': 3}}
+    s = compute_summary(d)
+    assert s['node_counters']['stereo_node'] == {'bad_image': 3}
+    assert ('ICP decisions  290 accepted, refused: 8 by the drift guard, 4 as misfits; 2 '
+            'confirmed by repeated captures, 0 after a free fall, 0 model restarts'
+            in format_summary(s))
+    d.node_counters = {}
+    assert 'ICP decisions' not in format_summary(compute_summary(d))
+
+
+def test_the_monitor_keeps_each_nodes_latest_integer_counters():
+    from types import SimpleNamespace as NS
+    from terrain_ros.tools.demo import Monitor
+    import threading
+    m = Monitor.__new__(Monitor)           # the callback alone: no ROS context needed
+    m.lock, m.node_counters = threading.Lock(), {}
+    kv = [NS(key='mapper_accepted', value='12'), NS(key='note', value='not a number')]
+    m._on_diagnostics(NS(status=[NS(name='/icp_mapper', values=kv)]))
+    m._on_diagnostics(NS(status=[NS(name='/icp_mapper',
+                                    values=[NS(key='mapper_accepted', value='13')])]))
+    assert m.node_counters == {'icp_mapper': {'mapper_accepted': 13}}
+
+
 def _pose(x, y, yaw_deg):
     c, s_ = np.cos(np.radians(yaw_deg)), np.sin(np.radians(yaw_deg))
     T = np.eye(4)

@@ -350,6 +350,9 @@ def fast_executor(context):
 IMAGE_TOPIC = '/stereo/left/image_rect'
 STAGE_TOPICS = ('/stereo/points', '/map/fine', '/map/filled', '/footstep_plan')
 STAGE_NAMES = ('stereo', 'icp_mapper', 'terrain_fill', 'footstep_planner')
+#: the nodes whose ~/diagnostics counters go into summary.json (``node_counters``)
+COUNTER_NODES = ('sim_bridge', 'stereo_node', 'icp_mapper', 'terrain_fill', 'footstep_planner',
+                 'walking_controller')
 
 
 def stage_latencies(image_wall: Dict[tuple, float],
@@ -416,6 +419,8 @@ class Monitor:
         self.stage_wall: Dict[str, Dict[tuple, float]] = {
             t: {} for t in (IMAGE_TOPIC,) + STAGE_TOPICS}
         self.counts: Dict[str, int] = {}
+        # each node's latest ~/diagnostics counters (cumulative since the node started)
+        self.node_counters: Dict[str, Dict[str, int]] = {}
         self._joint_index = None
         self._running = True
         self._subscribe()
@@ -425,6 +430,7 @@ class Monitor:
     def _subscribe(self) -> None:
         from geometry_msgs.msg import PoseStamped
         from nav_msgs.msg import Odometry
+        from diagnostic_msgs.msg import DiagnosticArray
         from rosgraph_msgs.msg import Clock
         from sensor_msgs.msg import Image, JointState, PointCloud2
         from std_msgs.msg import Header
@@ -450,6 +456,8 @@ class Monitor:
         sub(JointState, '/joint_states', self._on_joints, SENSOR_QOS)
         sub(Header, '/capture_request', lambda m: self._count('/capture_request'),
             RELIABLE_QOS)
+        for name in COUNTER_NODES:
+            sub(DiagnosticArray, f'/{name}/diagnostics', self._on_diagnostics, RELIABLE_QOS)
         # Raw (undeserialized) for big messages: only their stamps and counts are needed.
         sub(Image, IMAGE_TOPIC, self._on_image, SENSOR_QOS, raw=True)
         sub(PointCloud2, '/stereo/points', self._on_points, SENSOR_QOS, raw=True)
@@ -488,6 +496,17 @@ class Monitor:
         g.pose.position.x = float(self.finish_x + GOAL_BEYOND_FINISH_M)
         g.pose.orientation.w = 1.0
         self.goal_pub.publish(g)
+
+    def _on_diagnostics(self, msg) -> None:
+        for st in msg.status:
+            counts = {}
+            for kv in st.values:
+                try:
+                    counts[kv.key] = int(kv.value)
+                except ValueError:
+                    continue          # a counter is an integer; anything else is not one
+            with self.lock:
+                self.node_counters[st.name.lstrip('/')] = counts
 
     def _count(self, topic: str) -> None:
         self.counts[topic] = self.counts.get(topic, 0) + 1
@@ -718,6 +737,8 @@ class Monitor:
         d.latencies_ms = list(self.latencies_ms)
         d.latency_stages_ms = stage_latencies(self.stage_wall[IMAGE_TOPIC], self.stage_wall)
         d.counts = dict(self.counts)
+        with self.lock:
+            d.node_counters = {k: dict(v) for k, v in sorted(self.node_counters.items())}
         return d
 
 
