@@ -1529,7 +1529,7 @@ class IcpMapper:
                 # the runs' corrections are measurements of one offset: their mean, on this
                 # capture's prior, averages out ICP's scatter along its cost valleys
                 reason = ''
-                T_base = self._mean_correction() @ T_prior
+                T_base = self._mean_correction(T_prior)
                 T_cam = T_base @ self.T_base_camera
                 corr_m = float(np.linalg.norm(T_base[:3, 3] - T_prior[:3, 3]))
                 corr_rad = angle_between(T_base[:3, :3], T_prior[:3, :3])
@@ -1597,13 +1597,15 @@ class IcpMapper:
         return (travel >= c.confirm_min_travel_m and corr_m <= c.max_correction_confirmed_m
                 and corr_rad <= np.radians(c.max_rotation_confirmed_deg))
 
-    def _mean_correction(self) -> np.ndarray:
-        """The mean of the recorded refused corrections (translation mean, rotation by
-        :meth:`scipy.spatial.transform.Rotation.mean`), as a 4x4 acting on a map pose."""
+    def _mean_correction(self, T_prior: np.ndarray) -> np.ndarray:
+        """``T_prior`` corrected by the mean of the recorded refused corrections: their mean
+        shift added to its position, their mean turn (:meth:`Rotation.mean`) applied to its
+        orientation (the body turns in place; a turn about the map origin would also move it
+        by the turn times its distance from there)."""
         C = np.array([T for T, _ in self._refused])
-        out = np.eye(4)
-        out[:3, :3] = Rotation.from_matrix(C[:, :3, :3]).mean().as_matrix()
-        out[:3, 3] = C[:, :3, 3].mean(axis=0)
+        out = np.array(T_prior, dtype=np.float64)
+        out[:3, :3] = Rotation.from_matrix(C[:, :3, :3]).mean().as_matrix() @ T_prior[:3, :3]
+        out[:3, 3] = T_prior[:3, 3] + C[:, :3, 3].mean(axis=0)
         return out
 
     def _agree(self, A: np.ndarray, B: np.ndarray) -> bool:

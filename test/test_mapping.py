@@ -193,6 +193,18 @@ def test_a_slip_measured_by_three_captures_in_a_row_is_accepted(terrain):
     assert off.counters['rejected_correction'] == 4 and off.counters['accepted_confirmed'] == 0
 
 
+def test_the_confirmed_pose_is_the_prior_moved_by_the_mean_shift_and_turned_in_place():
+    m = mp.IcpMapper(CONFIG, T_BC)
+    prior = make_T(rpy_to_R(0.0, 0.0, np.radians(10.0)), [1.5, 0.5, 0.2])
+    for yaw_deg, dy in ((1.0, 0.01), (2.0, 0.02), (3.0, 0.03)):
+        C = make_T(rpy_to_R(0.0, 0.0, np.radians(yaw_deg)), [0.03, dy, 0.0])
+        m._refused.append((C, np.eye(4)))
+    T = m._mean_correction(prior)
+    # 1.6 m from the map origin: a 2 deg turn about it would move the body by 5.6 cm
+    np.testing.assert_allclose(T[:3, 3], [1.53, 0.52, 0.2], atol=1e-12)
+    np.testing.assert_allclose(T[:3, :3], rpy_to_R(0.0, 0.0, np.radians(12.0)), atol=1e-9)
+
+
 def test_corrections_that_disagree_or_a_robot_standing_still_confirm_nothing(terrain):
     """Corrections that move from capture to capture (3 cm apart, over the 2 cm tolerance) are not
     a slip; the same offset seen from the same place (no travel) repeats any wrong minimum, so
