@@ -276,6 +276,15 @@ class IcpMapperNode(Node):
         self.captures += 1
         if not res.accepted:
             self.counters.bump('rejected_alignment', res.reason)
+            if 'drift' in res.reason and res.T_map_base_icp is not None:
+                # every one: a run of these is a slip (confirmed or not), worth reading back
+                d = res.T_map_base_icp[:3, 3] - res.T_map_base_prior[:3, 3]
+                R = res.T_map_base_icp[:3, :3] @ res.T_map_base_prior[:3, :3].T
+                self.get_logger().info(
+                    f'drift guard refused ICP at {t:.2f} s: shift ({1e3 * d[0]:.0f}, '
+                    f'{1e3 * d[1]:.0f}, {1e3 * d[2]:.0f}) mm, turn '
+                    f'{np.degrees(np.arctan2(R[1, 0], R[0, 0])):.2f} deg yaw '
+                    f'({res.correction_deg:.2f} deg in all)')
         elif self.mapper.counters['accepted_confirmed'] > self._confirmed_logged:
             self._confirmed_logged = self.mapper.counters['accepted_confirmed']
             self.get_logger().warn(

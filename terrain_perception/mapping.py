@@ -181,9 +181,10 @@ class MapperConfig:
         'capture (a y-yaw cost valley)', 0.0, 1.0)
     confirm_tolerance_deg: float = param(2.0, 'agreement of their rotations [deg]', 0.0, 180.0)
     confirm_min_travel_m: float = param(
-        0.02, 'dead reckoning must have moved this far over the confirming captures [m]: a body '
-        'standing still sees the same view, and a wrong minimum (a periodic pattern) repeats '
-        'with it', 0.0, 10.0)
+        0.01, 'dead reckoning must have moved this far over the agreeing captures [m] (the run '
+        'grows past confirm_captures until it has): a body standing still sees the same view, '
+        'and a wrong minimum (a periodic pattern) repeats with it. FROG-I walks the stones at '
+        '1.2 cm/s with 5 captures/s: 3 captures span 5 mm', 0.0, 10.0)
     max_correction_confirmed_m: float = param(0.10, 'largest correction [m] confirmation '
                                               'accepts', 0.0, 10.0)
     max_rotation_confirmed_deg: float = param(6.0, 'largest rotation correction [deg] '
@@ -274,6 +275,8 @@ class MapperUpdate:
             (a partial update when 0 < n_degenerate < 6).
         min_information: smallest eigenvalue of the normalised point-to-plane information
             (see :func:`remove_degenerate_motion`); near 0 = a direction is unconstrained.
+        T_map_base_icp: ICP's pose before the guards (None for a first capture): with
+            ``T_map_base_prior`` it gives the correction a refused alignment measured.
         information_limit: the eigenvalue a direction needed to be corrected (the larger of
             ``degeneracy_threshold`` and the noise floor from the residual).
     """
@@ -294,6 +297,7 @@ class MapperUpdate:
     n_degenerate: int = 0
     min_information: float = float('nan')
     information_limit: float = float('nan')
+    T_map_base_icp: Optional[np.ndarray] = None
 
 
 def _check_T(T: np.ndarray, name: str) -> np.ndarray:
@@ -1249,7 +1253,7 @@ class IcpMapper:
         self._disturbed_at: Optional[float] = None   # see note_disturbance
         # (correction T_base T_prior^-1, T_odom_base) of the refused corrections in a row
         self._refused: Deque[Tuple[np.ndarray, np.ndarray]] = collections.deque(
-            maxlen=max(config.confirm_captures, 1))
+            maxlen=max(config.confirm_captures, config.max_consecutive_rejections, 1))
         # (IMU attitude R_world_base, map pose) at the last accepted capture
         self._accepted_attitude: Optional[Tuple[np.ndarray, np.ndarray]] = None
 
@@ -1521,7 +1525,7 @@ class IcpMapper:
         if level and not reason:
             reason = level
             self.counters['rejected_level'] += 1
-        confirmed = False
+        confirmed, T_icp = False, T_base
         if drift:
             confirmed = not level and self._confirmed(T_base, T_prior, T_odom_base, corr_m,
                                                       corr_rad)
@@ -1540,7 +1544,7 @@ class IcpMapper:
         upd = MapperUpdate(not reason, False, reason, T_base, T_cam, T_prior,
                            self.T_map_odom.copy(), float(fitness), rmse,
                            corr_m, float(np.degrees(corr_rad)), len(src.points), n_model,
-                           n_degenerate, min_info, info_limit)
+                           n_degenerate, min_info, info_limit, T_icp)
         if reason:
             upd.T_map_base, upd.T_map_camera = T_prior, T_prior @ self.T_base_camera
             self._rejections_in_a_row += 1
@@ -1573,9 +1577,10 @@ class IcpMapper:
 
     def _confirmed(self, T_map_base: np.ndarray, T_prior: np.ndarray, T_odom_base: np.ndarray,
                    corr_m: float, corr_rad: float) -> bool:
-        """Record a correction the drift guard refused; True when it is the
-        ``confirm_captures``-th in a row to measure the same correction (see
-        ``MapperConfig.confirm_captures``) and within the confirmed maxima.
+        """Record a correction the drift guard refused; True when at least
+        ``confirm_captures`` in a row, spread over ``confirm_min_travel_m`` of dead reckoning,
+        measured the same correction (see ``MapperConfig.confirm_captures``) and it is within
+        the confirmed maxima.
 
         The correction is compared in the map frame (``T_map_base T_prior^-1``: the shift and
         turn that take the prior to ICP's pose), not as a map-from-odometry transform, whose
@@ -1586,12 +1591,16 @@ class IcpMapper:
         cand = np.eye(4)
         cand[:3, :3] = T_map_base[:3, :3] @ T_prior[:3, :3].T
         cand[:3, 3] = T_map_base[:3, 3] - T_prior[:3, 3]
-        if self._refused and not self._agree(self._refused[-1][0], cand):
-            self._refused.clear()       # a new offset starts a new run
+        # the run: the latest refusals that all agree with this one
+        keep = 0
+        for T, _ in reversed(self._refused):
+            if not self._agree(T, cand):
+                break
+            keep += 1
+        while len(self._refused) > keep:
+            self._refused.popleft()
         self._refused.append((cand, T_odom_base.copy()))
         if len(self._refused) < c.confirm_captures:
-            return False
-        if not all(self._agree(T, cand) for T, _ in self._refused):
             return False
         travel = float(np.linalg.norm(self._refused[-1][1][:3, 3] - self._refused[0][1][:3, 3]))
         return (travel >= c.confirm_min_travel_m and corr_m <= c.max_correction_confirmed_m

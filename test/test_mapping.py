@@ -178,9 +178,9 @@ def _slip_walk(scene, config, slips, step_m=0.015):
 
 def test_a_slip_measured_by_three_captures_in_a_row_is_accepted(terrain):
     """Dead reckoning missed a 4 cm slide and no IMU saw it. The drift guard refuses the
-    ICP's 4 cm correction; the third capture in a row that measures the same offset is
-    accepted at the true pose (confirm_captures 3), and the next one is aligned normally. With
-    confirmation off all of them are refused."""
+    ICP's 4 cm correction; the third capture in a row that measures the same offset (1.5 cm
+    steps: 3 cm of travel) is accepted at the true pose, and the next one is aligned normally.
+    With confirmation off all of them are refused."""
     _, scene = terrain
     m, ups = _slip_walk(scene, CONFIG, [0.04] * 4)
     assert [u.accepted for u, _ in ups] == [False, False, True, True], [u.reason for u, _ in ups]
@@ -188,6 +188,11 @@ def test_a_slip_measured_by_three_captures_in_a_row_is_accepted(terrain):
     for u, truth in ups[2:]:
         assert pose_error(u.T_map_base, truth)[0] < 2e-3
     assert ups[3][0].correction_m < 5e-3          # re-anchored: no correction needed any more
+    # a refused update still says what ICP measured
+    assert pose_error(ups[0][0].T_map_base_icp, ups[0][1])[0] < 3e-3
+    # walking slowly (4 mm per capture), the run grows until it spans confirm_min_travel_m
+    slow, ups_slow = _slip_walk(scene, CONFIG, [0.04] * 5, step_m=0.004)
+    assert [u.accepted for u, _ in ups_slow] == [False, False, False, True, True]
     off, ups_off = _slip_walk(scene, dataclasses.replace(CONFIG, confirm_captures=0), [0.04] * 4)
     assert not any(u.accepted for u, _ in ups_off)
     assert off.counters['rejected_correction'] == 4 and off.counters['accepted_confirmed'] == 0
