@@ -133,7 +133,6 @@ class IcpMapperNode(Node):
         self._up_base: Optional[np.ndarray] = None
         self._fine_stamp = None  # stamp of a fused map not yet published
         self.captures = 0
-        self._confirmed_logged = 0       # mapper counter accepted_confirmed already logged
         self._joints: Deque[tuple] = deque(maxlen=2000)   # (stamp [s], q (4, 3))
         self._joint_t: Deque[float] = deque(maxlen=2000)  # the same stamps, for np.fromiter
         self._pose_msgs = ConvertOnce(lambda tT: (float(tT[0]), tT[1].tobytes()),
@@ -285,11 +284,10 @@ class IcpMapperNode(Node):
                     f'{1e3 * d[1]:.0f}, {1e3 * d[2]:.0f}) mm, turn '
                     f'{np.degrees(np.arctan2(R[1, 0], R[0, 0])):.2f} deg yaw '
                     f'({res.correction_deg:.2f} deg in all)')
-        elif self.mapper.counters['accepted_confirmed'] > self._confirmed_logged:
-            self._confirmed_logged = self.mapper.counters['accepted_confirmed']
+        elif res.confirmed:
             self.get_logger().warn(
                 f'accepted a {res.correction_m * 1e3:.0f} mm / {res.correction_deg:.1f} deg '
-                f'correction the drift guard had refused: '
+                f'correction the drift guard had refused: at least '
                 f'{self.mapper_cfg.confirm_captures} captures in a row measured it (a slip '
                 f'dead reckoning missed)')
         self._publish(res, msg.header.stamp)

@@ -277,6 +277,8 @@ class MapperUpdate:
             (see :func:`remove_degenerate_motion`); near 0 = a direction is unconstrained.
         T_map_base_icp: ICP's pose before the guards (None for a first capture): with
             ``T_map_base_prior`` it gives the correction a refused alignment measured.
+        confirmed: accepted as a correction the drift guard refused but repeated captures
+            confirmed (``MapperConfig.confirm_captures``).
         information_limit: the eigenvalue a direction needed to be corrected (the larger of
             ``degeneracy_threshold`` and the noise floor from the residual).
     """
@@ -298,6 +300,7 @@ class MapperUpdate:
     min_information: float = float('nan')
     information_limit: float = float('nan')
     T_map_base_icp: Optional[np.ndarray] = None
+    confirmed: bool = False
 
 
 def _check_T(T: np.ndarray, name: str) -> np.ndarray:
@@ -1544,7 +1547,7 @@ class IcpMapper:
         upd = MapperUpdate(not reason, False, reason, T_base, T_cam, T_prior,
                            self.T_map_odom.copy(), float(fitness), rmse,
                            corr_m, float(np.degrees(corr_rad)), len(src.points), n_model,
-                           n_degenerate, min_info, info_limit, T_icp)
+                           n_degenerate, min_info, info_limit, T_icp, confirmed)
         if reason:
             upd.T_map_base, upd.T_map_camera = T_prior, T_prior @ self.T_base_camera
             self._rejections_in_a_row += 1

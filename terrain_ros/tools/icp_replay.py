@@ -163,7 +163,7 @@ def _after_slip(slip: tuple, t: list, pos_err: np.ndarray) -> dict:
     recover = 1 if over.size == 0 else (None if over[-1] == len(p) - 1 else int(over[-1]) + 2)
     return {'slip': list(slip), 'captures_after_slip': int(after.sum()),
             'pos_err_m_rms_after_slip': float(np.sqrt(np.mean(p ** 2))),
-            'captures_to_recover': recover}
+            'captures_to_recover': recover, 'recovered_m': RECOVERED_M}
 
 
 def _map_figures(fine, terrain_msg) -> dict:
