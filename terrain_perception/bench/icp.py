@@ -7,7 +7,10 @@ robot profile's camera at ``T_base_camera``:
 * depth-buffer clouds: :mod:`terrain_perception.raycast` over the course's true height field (a
   perfect range sensor);
 * stereo-node clouds: ``terrain_perception.sim.world.render_stereo`` images through the stereo
-  pipeline (``terrain_perception.stereo``), when the simulator provides them.
+  pipeline (``terrain_perception.stereo``), when the simulator provides them; the stereo map's
+  error is also split by terrain region (:func:`map_error_by_region`: floor, floor near a
+  flank, flanks, rock tops) for the default pipeline, Shao's post-processing alone, each
+  ``--stereo-variant`` (all from true poses) and the default at our ICP's poses.
 
 Dead reckoning integrates the true body increments with a stride-length error (default +5 %)
 and a yaw drift (default 2 deg per metre walked). Methods compared on the same captures:
@@ -70,11 +73,47 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('--no-alternatives', action='store_true',
                         help='skip the point-to-point and KISS-ICP comparisons')
     parser.add_argument('--no-stereo', action='store_true', help='skip the stereo-cloud run')
+    parser.add_argument('--stereo-variant', action='append', default=[], metavar='NAME=JSON',
+                        type=parse_stereo_variant,
+                        help='also map the same stereo images through the stereo pipeline '
+                        'with these StereoConfig overrides, from the true poses, e.g. '
+                        '\'wide={"fattening_radius_px": 7, "fattening_jump_px": 2}\' '
+                        '(repeatable): map error by terrain region against the default')
 
 
 # ------------------------------------------------------------------------------------------
 # the walk
 # ------------------------------------------------------------------------------------------
+#: rows of the stereo map-by-region table that every run has
+RESERVED_ROWS = ('default', 'shao', 'default_icp')
+
+
+def parse_stereo_variant(text: str):
+    """``NAME=JSON`` -> (name, dict of :class:`~terrain_perception.stereo.StereoConfig`
+    overrides); the field names are checked against StereoConfig."""
+    import json
+
+    from terrain_perception.stereo import StereoConfig
+    name, sep, body = text.partition('=')
+    name = name.strip()
+    if not sep or not name or name in RESERVED_ROWS:
+        raise argparse.ArgumentTypeError(
+            f'stereo variant {text!r}: expected NAME=JSON with a name other than '
+            + ', '.join(f'"{r}"' for r in RESERVED_ROWS) + ' (the rows every run has)')
+    try:
+        overrides = json.loads(body)
+    except json.JSONDecodeError as e:
+        raise argparse.ArgumentTypeError(f'stereo variant {name!r}: not JSON ({e})') from None
+    if not isinstance(overrides, dict):
+        raise argparse.ArgumentTypeError(f'stereo variant {name!r}: JSON must be an object')
+    fields = {f.name for f in dataclasses.fields(StereoConfig)}
+    unknown = sorted(set(overrides) - fields)
+    if unknown:
+        raise argparse.ArgumentTypeError(
+            f'stereo variant {name!r}: not StereoConfig fields: {", ".join(unknown)}')
+    return name, overrides
+
+
 def path_xy_yaw(path: str, start_x: float, distance: float, step: float):
     """Sampled path: ``(x, y, heading)`` arrays every ``step`` metres of arc length.
 
@@ -182,6 +221,50 @@ def map_rmse(grid: GridMap, course: GridMap) -> Dict[str, float]:
     return {'rmse_m': float(np.sqrt(np.mean(d ** 2))), 'cells': int(ok.sum()),
             'p95_abs_m': float(np.percentile(np.abs(d), 95)),
             'above_5cm': int(np.sum(d > 0.05))}
+
+
+#: terrain regions of :func:`map_error_by_region`, in print order
+REGIONS = ('floor', 'floor_near_flank', 'flank', 'top')
+
+
+def map_error_by_region(grid: GridMap, course: GridMap, flank_slope_deg: float = 30.0,
+                        near_m: float = 0.03, floor_m: float = 0.005,
+                        top_m: float = 0.02) -> Dict[str, Dict[str, float]]:
+    """Height error of the observed cells by what the true surface is there: ``flank`` (true
+    slope above ``flank_slope_deg``), ``floor_near_flank`` (true height under ``floor_m``
+    within ``near_m`` of a flank: where stereo's foreground fattening draws rocks wider),
+    ``floor`` (the rest of the floor), ``top`` (not a flank, at least ``top_m`` high). Each
+    region: ``cells``, ``rmse_m`` and ``mean_m`` (the bias: > 0 drawn too high); an empty
+    region has NaN errors. The slope is measured on the truth sampled at the map's cells."""
+    from scipy import ndimage
+
+    xs, ys = grid.cell_centers()
+    X, Y = np.meshgrid(xs, ys, indexing='ij')
+    truth = rc.interpolate_height(course, np.stack([X, Y], -1))
+    h = grid[ELEVATION]
+    ok = np.isfinite(h) & np.isfinite(truth)
+    gx, gy = np.gradient(np.nan_to_num(truth), grid.resolution_m)
+    steep = np.degrees(np.arctan(np.hypot(gx, gy))) > flank_slope_deg
+    dist = (ndimage.distance_transform_edt(~steep) * grid.resolution_m if steep.any()
+            else np.full(steep.shape, np.inf))       # (the transform needs a flank cell)
+    low = truth < floor_m
+    masks = {'floor': ok & low & (dist > near_m),
+             'floor_near_flank': ok & low & (dist > 0.0) & (dist <= near_m),
+             'flank': ok & steep,
+             'top': ok & ~steep & (truth >= top_m)}
+    out = {}
+    for name in REGIONS:
+        d = (h - truth)[masks[name]]
+        out[name] = {'cells': int(d.size),
+                     'rmse_m': float(np.sqrt(np.mean(d ** 2))) if d.size else float('nan'),
+                     'mean_m': float(np.mean(d)) if d.size else float('nan')}
+    return out
+
+
+def _region_row(name: str, rm: Dict[str, float], regions: Dict[str, Dict[str, float]]) -> str:
+    cols = ' '.join(f'{1e3 * regions[r]["rmse_m"]:7.1f} {1e3 * regions[r]["mean_m"]:+6.1f}'
+                    for r in REGIONS)
+    return f'{name:<14} {1e3 * rm["rmse_m"]:7.2f} {rm["cells"]:7d} {cols}'
 
 
 # ------------------------------------------------------------------------------------------
@@ -446,8 +529,10 @@ def run(args: argparse.Namespace) -> dict:
     else:
         # the same images through Shao's post-processing alone (no fattening guard): the
         # guard's effect on the map, from true poses
-        both = stereo_clouds(course, robot, T_true, cam, shao={'fattening_radius_px': 0})
-        sclouds, shao_clouds = (None, None) if both is None else both
+        variants = dict(getattr(args, 'stereo_variant', None) or [])
+        every = stereo_clouds(course, robot, T_true, cam, shao={'fattening_radius_px': 0},
+                              **variants)
+        sclouds, shao_clouds = (None, None) if every is None else every[:2]
         if sclouds is None:
             print('stereo-node clouds: NOT MEASURED (terrain_perception.sim.world.render_stereo '
                   'is not available)')
@@ -458,10 +543,9 @@ def run(args: argparse.Namespace) -> dict:
             e_st = pose_errors(st['poses'], T_true)
             rm_st = map_rmse(st['grid'], course)
             rmse_stereo = rm_st['rmse_m']
-            rm_st_true = map_rmse(map_at_true_poses(st_cfg, T_bc, sclouds, T_true, stamps, fb),
-                                  course)
-            rm_shao = map_rmse(map_at_true_poses(st_cfg, T_bc, shao_clouds, T_true, stamps,
-                                                 fb), course)
+            g_st_true = map_at_true_poses(st_cfg, T_bc, sclouds, T_true, stamps, fb)
+            g_shao = map_at_true_poses(st_cfg, T_bc, shao_clouds, T_true, stamps, fb)
+            rm_st_true, rm_shao = map_rmse(g_st_true, course), map_rmse(g_shao, course)
             results['stereo'] = {'errors': e_st, 'map': rm_st, 'counters': st['counters'],
                                  'map_at_true_poses_no_fattening_guard': rm_shao,
                                  'icp_ms_median': float(np.median(st['icp_ms'])),
@@ -496,6 +580,30 @@ def run(args: argparse.Namespace) -> dict:
                   f'not constrain them): {results["stereo"]["partial_updates"]} of '
                   f'{len(sclouds) - 1} captures, '
                   f'{results["stereo"]["directions_kept_at_prior"]} directions in all')
+            # the map's error by terrain region, from true poses: the stereo clouds' own
+            # error where it matters to footholds (flanks drawn wide, rock tops)
+            print('\nStereo map by terrain region (RMSE / mean error [mm]; flank: true '
+                  'slope > 30 deg; near flank: floor within 3 cm of one); from true poses, '
+                  'except default_icp: the default clouds at our ICP\'s poses')
+            print(f'{"stereo config":<14} {"RMSE":>7} {"cells":>7} ' + ' '.join(
+                f'{r:>14}' for r in REGIONS))
+            grids = {'default': (rm_st_true, g_st_true), 'shao': (rm_shao, g_shao)}
+            for name, vclouds in zip(variants, every[2:]):
+                g = map_at_true_poses(st_cfg, T_bc, vclouds, T_true, stamps, fb)
+                grids[name] = (map_rmse(g, course), g)
+            # the same default clouds registered by our ICP from dead reckoning (the map the
+            # planner gets): what localisation adds to the stereo clouds' own error
+            grids['default_icp'] = (rm_st, st['grid'])
+            by_region = {}
+            for name, (rm, g) in grids.items():
+                regions = map_error_by_region(g, course)
+                by_region[name] = {'map': rm, 'regions': regions,
+                                   'poses': 'icp' if name == 'default_icp' else 'true',
+                                   'overrides': variants.get(
+                                       name, {'fattening_radius_px': 0} if name == 'shao'
+                                       else {})}
+                print(_region_row(name, rm, regions))
+            results['stereo']['by_region'] = by_region
 
     icp_med = float(np.median(ours['icp_cpu_ms']))
     rate = 1e3 / float(np.mean(ours['update_cpu_ms']))
@@ -533,6 +641,9 @@ def run(args: argparse.Namespace) -> dict:
             f'{other}_solver', {}).get('map', {}).get('rmse_m'),
         'partial_updates_depth': int(np.sum(ours['n_degenerate'] > 0)),
         'partial_updates_stereo': results.get('stereo', {}).get('partial_updates', 0),
+        # stereo map from true poses by terrain region, per stereo config (default, shao =
+        # no fattening guard, then each --stereo-variant); None without a stereo run
+        'map_by_region_stereo': results.get('stereo', {}).get('by_region'),
         'details': {
             'walk_m': walked, 'captures': len(T_true), 'camera': [cam.width, cam.height],
             'terrain': args.terrain, 'seed': args.seed, 'step_m': step,
