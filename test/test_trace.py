@@ -8,7 +8,7 @@ from terrain_perception import gait as G
 from terrain_perception.controller import WalkingConfig
 from terrain_perception.robot_model import load_robot_model
 from terrain_perception.sim.trace import (PHASES, WalkTrace, fall_report, hanging_runs,
-                                          load_trace)
+                                          landing_summary, landings, load_trace)
 from terrain_perception.sim.walk import WalkRunner, link_masses, make_flat_world, spawn_standing
 
 DT = 1.0 / 500.0
@@ -58,6 +58,10 @@ def test_the_trace_records_the_truth_of_a_flat_walk(tmp_path):
     off = np.linalg.norm(a['feet'][..., :2] - a['believed_feet'][..., :2], axis=2)[stance]
     assert np.percentile(off, 95) < 0.015
     assert np.percentile(np.abs(bottom - a['believed_feet'][..., 2])[stance], 95) < 0.005
+    # Every swing lands once, each leg on its own swings, and is loaded when it does.
+    ld = landings(a)
+    assert sorted(ld['leg'].tolist()) == sorted(int(k) for k in legs)
+    assert np.all(ld['peak_n'] > 1.0) and np.all(ld['swing_fraction'] > 0.4)
     assert fall_report(a, tilt_deg=10.0) is None
     saved = load_trace(tr.save(tmp_path / 'walk.npz', seed=3, status='ok'))
     for k, v in a.items():
@@ -150,3 +154,38 @@ def test_frog_walks_in_among_the_stones_on_ground_truth_footsteps():
     assert r['foot_err_p95_m'] < 0.02
     # the full sim run walks rocks-6cm only: another course is refused, by name
     assert runner.main(['sim', '--rocks-course', 'stones-15cm', '--rocks-seeds', '1']) == 2
+
+
+def _one_swing_trace(descent_m_s: float, peak_n: float) -> dict:
+    """A 1 s trace at 10 ms rows: LF swings over rows 20-59 and lowers at ``descent_m_s``
+    until it touches the ground between rows 49 and 50, where its force jumps to ``peak_n``
+    and then settles at 7 N; the other feet stand."""
+    n = 100
+    t = np.arange(n) * 0.01
+    feet = np.zeros((n, 4, 3))
+    z = np.zeros(n)
+    z[20:50] = 0.04
+    z[40:50] = descent_m_s * 0.01 * np.arange(10, 0, -1)      # row 49: one row above ground
+    feet[:, LF, 2] = z
+    force = np.full((n, 4), 9.0)
+    force[20:50, LF] = 0.0
+    force[50, LF] = peak_n
+    force[51:, LF] = 7.0
+    swing = np.zeros((n, 4), bool)
+    swing[20:60, LF] = True
+    return {'t': t, 'feet': feet, 'force': force, 'swing_legs': swing}
+
+
+def test_landings_measure_the_touchdown_speed_place_in_the_swing_and_force():
+    ld = landings(_one_swing_trace(0.5, 60.0))
+    assert ld['leg'].tolist() == [LF] and ld['t'][0] == pytest.approx(0.50)
+    assert ld['descent_m_s'][0] == pytest.approx(0.5)
+    assert ld['swing_fraction'][0] == pytest.approx(30 / 40)
+    assert ld['peak_n'][0] == pytest.approx(60.0)
+    soft = _one_swing_trace(0.05, 12.0)
+    s = landing_summary([_one_swing_trace(0.5, 60.0), soft], weight_n=27.0)
+    assert s['count'] == 2 and s['share_over_weight'] == pytest.approx(0.5)
+    assert s['descent_m_s_median'] == pytest.approx(0.275)
+    # a swing that never meets the ground is no touchdown
+    soft['force'][:, LF] = 0.0
+    assert landings(soft)['leg'].size == 0 and landing_summary([soft], 27.0) == {'count': 0}

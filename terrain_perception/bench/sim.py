@@ -385,6 +385,21 @@ def _rocks_seeds(n: int, start_x: float, goal_x: float, first: int = 0,
         print(f'{name:<9} {marks}  | crossed {summary[name]["crossed"]}/{n}, falls '
               f'{summary[name]["falls"]}, mean advance {summary[name]["advanced_m_mean"]:.2f} m'
               + (f', crossing time median {t:.0f} s sim' if t is not None else ''))
+    if trace_dir:
+        # how the swing feet met the ground, every touchdown of the row's traced walks
+        from terrain_perception.robot_model import load_robot_model
+        from terrain_perception.sim.trace import landing_summary
+        weight = load_robot_model(robot_name).total_mass_kg * 9.81
+        for name, rs in rows.items():
+            ls = landing_summary([r['trace'] for r in rs if r.get('trace')], weight)
+            summary[name]['landings'] = ls
+            if ls['count']:
+                print(f'{name:<9} touchdowns {ls["count"]}: descent at contact '
+                      f'{ls["descent_m_s_median"]:.2f} m/s median (p90 '
+                      f'{ls["descent_m_s_p90"]:.2f}), at {ls["swing_fraction_median"]:.2f} '
+                      f'of the swing; peak force {ls["peak_n_median"]:.0f} N median (p90 '
+                      f'{ls["peak_n_p90"]:.0f}), {100 * ls["share_over_weight"]:.0f} % above '
+                      f'the robot\'s weight ({weight:.0f} N)')
     _print_fall_reports((name, r) for name, rs in rows.items() for r in rs)
     # the keys keep their rocks-6cm names (the results of earlier sessions); 'course' and
     # 'robot' say what was walked

@@ -222,3 +222,63 @@ def fall_report(trace: Union[dict, str, Path], window_s: float = 2.0,
                      + ' '.join(f'{f:6.1f}' for f in tr['force_estimate'][i])
                      + (f' {m * 1000:+11.1f}' if np.isfinite(m) else f' {"-":>11}'))
     return '\n'.join(lines)
+
+
+#: A swing foot whose true normal force exceeds this has met the ground [N].
+CONTACT_N = 1.0
+
+
+def landings(trace: Union[dict, str, Path], after_fraction: float = 0.4,
+             peak_window_s: float = 0.1) -> dict:
+    """Every swing's touchdown in a trace: the first row after ``after_fraction`` of the swing
+    (its rows with the leg swinging) whose true normal force exceeds :data:`CONTACT_N`, up to
+    0.3 s after the swing ended. Per touchdown (arrays, one entry each): ``leg``, ``t`` [s],
+    ``descent_m_s`` (the foot centre's true downward speed over the row before the one in
+    which it touched: > 0 descending),
+    ``swing_fraction`` (where in the swing's rows it came), ``peak_n`` (the largest true
+    force in the ``peak_window_s`` from it). A min-jerk lowering that ends on the ground
+    meets it at ~zero speed; one that meets it early hits it at the lowering's speed."""
+    tr = load_trace(trace) if isinstance(trace, (str, Path)) else trace
+    t, z, force, swing = tr['t'], tr['feet'][:, :, 2], tr['force'], tr['swing_legs']
+    dt = float(np.median(np.diff(t))) if len(t) > 1 else 0.0
+    extra = int(round(0.3 / dt)) if dt > 0 else 0
+    peak_rows = max(1, int(round(peak_window_s / dt))) if dt > 0 else 1
+    out = {k: [] for k in ('leg', 't', 'descent_m_s', 'swing_fraction', 'peak_n')}
+    for leg in range(4):
+        s = np.concatenate([[0], swing[:, leg].astype(np.int8), [0]])
+        starts = np.flatnonzero(np.diff(s) == 1)
+        ends = np.flatnonzero(np.diff(s) == -1)          # exclusive
+        for a, b in zip(starts, ends):
+            lo = a + int(after_fraction * (b - a))
+            hit = np.flatnonzero(force[lo:min(b + extra, len(t)), leg] > CONTACT_N)
+            if not len(hit) or lo + hit[0] < 2:
+                continue
+            k = lo + int(hit[0])
+            # the contact came between rows k-1 and k: the speed over the row before that
+            j = k - 1
+            out['leg'].append(leg)
+            out['t'].append(float(t[k]))
+            out['descent_m_s'].append(float((z[j - 1, leg] - z[j, leg]) / (t[j] - t[j - 1]))
+                                      if t[j] > t[j - 1] else float('nan'))
+            out['swing_fraction'].append((k - a) / max(b - a, 1))
+            out['peak_n'].append(float(force[k:k + peak_rows, leg].max()))
+    return {k: np.asarray(v, dtype=np.int64 if k == 'leg' else np.float64)
+            for k, v in out.items()}
+
+
+def landing_summary(traces, weight_n: float) -> dict:
+    """Pooled :func:`landings` of several traces: ``count``, ``descent_m_s_median`` / ``_p90``,
+    ``swing_fraction_median``, ``peak_n_median`` / ``_p90`` and ``share_over_weight`` (the
+    touchdowns whose peak force exceeded ``weight_n``, the robot's weight)."""
+    pooled = [landings(tr) for tr in traces]
+    v = np.concatenate([p['descent_m_s'] for p in pooled]) if pooled else np.zeros(0)
+    f = np.concatenate([p['swing_fraction'] for p in pooled]) if pooled else np.zeros(0)
+    pk = np.concatenate([p['peak_n'] for p in pooled]) if pooled else np.zeros(0)
+    if not len(v):
+        return {'count': 0}
+    return {'count': int(len(v)),
+            'descent_m_s_median': float(np.nanmedian(v)),
+            'descent_m_s_p90': float(np.nanpercentile(v, 90)),
+            'swing_fraction_median': float(np.median(f)),
+            'peak_n_median': float(np.median(pk)), 'peak_n_p90': float(np.percentile(pk, 90)),
+            'share_over_weight': float(np.mean(pk > weight_n))}
