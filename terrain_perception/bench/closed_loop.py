@@ -177,7 +177,11 @@ def run(args) -> dict:
                   f'{n:7d}')
     med = round(float(np.median(lat)), 1) if lat.size else None
     p95 = round(float(np.percentile(lat, 95)), 1) if lat.size else None
-    print(f'capture-to-plan latency (full): median {med} ms, p95 {p95} ms over {lat.size} plans')
+    if lat.size:
+        print(f'capture-to-plan latency (full): median {med} ms, p95 {p95} ms over {lat.size} '
+              'plans')
+    else:
+        print('capture-to-plan latency (full): not measured (no trial of the full system)')
     for r in trials:
         r.pop('latencies_ms', None)
     return {'success': success, 'falls': falls, 'speed_mps': speed,
