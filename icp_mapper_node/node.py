@@ -48,9 +48,10 @@ from terrain_msgs.msg import TerrainGrid
 
 from terrain_perception.config import param
 from terrain_perception.kinematics import self_mask
-from terrain_perception.mapping import IcpMapper, MapperConfig, OdometryGate, PoseBuffer
+from terrain_perception.mapping import (IcpMapper, MapperConfig, OdometryGate, PoseBuffer,
+                                        map_frame_correction)
 from terrain_perception.robot_model import load_robot_model
-from terrain_perception.transforms import quat_to_R
+from terrain_perception.transforms import quat_to_R, yaw_of
 from terrain_ros.conversions import (ConvertOnce, JointStateError, cloud_to_xyz, grid_to_msg,
                                      joint_state_to_arrays, make_header, matrix_to_pose,
                                      odometry, pose_stamped, pose_to_matrix, stamp_to_sec,
@@ -277,12 +278,12 @@ class IcpMapperNode(Node):
             self.counters.bump('rejected_alignment', res.reason)
             if 'drift' in res.reason and res.T_map_base_icp is not None:
                 # every one: a run of these is a slip (confirmed or not), worth reading back
-                d = res.T_map_base_icp[:3, 3] - res.T_map_base_prior[:3, 3]
-                R = res.T_map_base_icp[:3, :3] @ res.T_map_base_prior[:3, :3].T
+                C = map_frame_correction(res.T_map_base_icp, res.T_map_base_prior)
+                d = C[:3, 3]
                 self.get_logger().info(
                     f'drift guard refused ICP at {t:.2f} s: shift ({1e3 * d[0]:.0f}, '
                     f'{1e3 * d[1]:.0f}, {1e3 * d[2]:.0f}) mm, turn '
-                    f'{np.degrees(np.arctan2(R[1, 0], R[0, 0])):.2f} deg yaw '
+                    f'{np.degrees(yaw_of(C)):.2f} deg yaw '
                     f'({res.correction_deg:.2f} deg in all)')
         elif res.confirmed:
             self.get_logger().warn(

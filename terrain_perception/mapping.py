@@ -303,6 +303,16 @@ class MapperUpdate:
     confirmed: bool = False
 
 
+def map_frame_correction(T_map_base: np.ndarray, T_prior: np.ndarray) -> np.ndarray:
+    """The shift and turn that take the pose ``T_prior`` to ``T_map_base``, in the map frame
+    (4x4: rotation ``R_base R_prior^T``, translation the difference of the positions; the
+    turn is about the body, not the map origin)."""
+    C = np.eye(4)
+    C[:3, :3] = T_map_base[:3, :3] @ T_prior[:3, :3].T
+    C[:3, 3] = T_map_base[:3, 3] - T_prior[:3, 3]
+    return C
+
+
 def _check_T(T: np.ndarray, name: str) -> np.ndarray:
     T = np.asarray(T, dtype=np.float64)
     if T.shape != (4, 4) or not np.all(np.isfinite(T)):
@@ -1591,9 +1601,7 @@ class IcpMapper:
         c = self.config
         if c.confirm_captures <= 0:
             return False
-        cand = np.eye(4)
-        cand[:3, :3] = T_map_base[:3, :3] @ T_prior[:3, :3].T
-        cand[:3, 3] = T_map_base[:3, 3] - T_prior[:3, 3]
+        cand = map_frame_correction(T_map_base, T_prior)
         # the run: the latest refusals that all agree with this one
         keep = 0
         for T, _ in reversed(self._refused):

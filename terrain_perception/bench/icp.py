@@ -86,6 +86,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 # ------------------------------------------------------------------------------------------
 #: rows of the stereo map-by-region table that every run has
 RESERVED_ROWS = ('default', 'shao', 'default_icp')
+#: the 'shao' row's StereoConfig overrides: Shao's post-processing without our fattening guard
+SHAO_OVERRIDES = {'fattening_radius_px': 0}
 
 
 def parse_stereo_variant(text: str):
@@ -206,13 +208,18 @@ def pose_errors(T_est: np.ndarray, T_true: np.ndarray) -> Dict[str, float]:
             'final_yaw_deg': float(yaw[-1]), 'rms_yaw_deg': float(np.sqrt(np.mean(yaw ** 2)))}
 
 
+def _truth_at_cells(grid: GridMap, course: GridMap) -> np.ndarray:
+    """The course's true surface height at ``grid``'s cell centres (NaN off the course)."""
+    xs, ys = grid.cell_centers()
+    X, Y = np.meshgrid(xs, ys, indexing='ij')
+    return rc.interpolate_height(course, np.stack([X, Y], -1))
+
+
 def map_rmse(grid: GridMap, course: GridMap) -> Dict[str, float]:
     """Height RMSE [m] of observed cells against the true surface at the cell centres, the
     p95 of the absolute error and ``above_5cm``: cells more than 5 cm above the truth (ledges
     that are not there: a planner steps around them, a swing lifts over them)."""
-    xs, ys = grid.cell_centers()
-    X, Y = np.meshgrid(xs, ys, indexing='ij')
-    truth = rc.interpolate_height(course, np.stack([X, Y], -1))
+    truth = _truth_at_cells(grid, course)
     h = grid[ELEVATION]
     ok = np.isfinite(h) & np.isfinite(truth)
     if not np.any(ok):
@@ -238,9 +245,7 @@ def map_error_by_region(grid: GridMap, course: GridMap, flank_slope_deg: float =
     region has NaN errors. The slope is measured on the truth sampled at the map's cells."""
     from scipy import ndimage
 
-    xs, ys = grid.cell_centers()
-    X, Y = np.meshgrid(xs, ys, indexing='ij')
-    truth = rc.interpolate_height(course, np.stack([X, Y], -1))
+    truth = _truth_at_cells(grid, course)
     h = grid[ELEVATION]
     ok = np.isfinite(h) & np.isfinite(truth)
     gx, gy = np.gradient(np.nan_to_num(truth), grid.resolution_m)
@@ -530,8 +535,8 @@ def run(args: argparse.Namespace) -> dict:
         # the same images through Shao's post-processing alone (no fattening guard): the
         # guard's effect on the map, from true poses
         variants = dict(getattr(args, 'stereo_variant', None) or [])
-        every = stereo_clouds(course, robot, T_true, cam, shao={'fattening_radius_px': 0},
-                              **variants)
+        overrides = {'shao': SHAO_OVERRIDES, **variants}
+        every = stereo_clouds(course, robot, T_true, cam, **overrides)
         sclouds, shao_clouds = (None, None) if every is None else every[:2]
         if sclouds is None:
             print('stereo-node clouds: NOT MEASURED (terrain_perception.sim.world.render_stereo '
@@ -599,9 +604,7 @@ def run(args: argparse.Namespace) -> dict:
                 regions = map_error_by_region(g, course)
                 by_region[name] = {'map': rm, 'regions': regions,
                                    'poses': 'icp' if name == 'default_icp' else 'true',
-                                   'overrides': variants.get(
-                                       name, {'fattening_radius_px': 0} if name == 'shao'
-                                       else {})}
+                                   'overrides': overrides.get(name, {})}
                 print(_region_row(name, rm, regions))
             results['stereo']['by_region'] = by_region
 

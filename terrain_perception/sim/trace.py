@@ -234,10 +234,10 @@ def landings(trace: Union[dict, str, Path], after_fraction: float = 0.4,
     (its rows with the leg swinging) whose true normal force exceeds :data:`CONTACT_N`, up to
     0.3 s after the swing ended. Per touchdown (arrays, one entry each): ``leg``, ``t`` [s],
     ``descent_m_s`` (the foot centre's true downward speed over the row before the one in
-    which it touched: > 0 descending),
-    ``swing_fraction`` (where in the swing's rows it came), ``peak_n`` (the largest true
-    force in the ``peak_window_s`` from it). A min-jerk lowering that ends on the ground
-    meets it at ~zero speed; one that meets it early hits it at the lowering's speed."""
+    which it touched: > 0 descending), ``swing_fraction`` (where in the swing's rows it came),
+    ``peak_n`` (the largest true force in the ``peak_window_s`` from it). A min-jerk lowering
+    that ends on the ground meets it at ~zero speed; one that meets it early hits it at the
+    lowering's speed."""
     tr = load_trace(trace) if isinstance(trace, (str, Path)) else trace
     t, z, force, swing = tr['t'], tr['feet'][:, :, 2], tr['force'], tr['swing_legs']
     dt = float(np.median(np.diff(t))) if len(t) > 1 else 0.0
@@ -271,9 +271,8 @@ def landing_summary(traces, weight_n: float) -> dict:
     ``swing_fraction_median``, ``peak_n_median`` / ``_p90`` and ``share_over_weight`` (the
     touchdowns whose peak force exceeded ``weight_n``, the robot's weight)."""
     pooled = [landings(tr) for tr in traces]
-    v = np.concatenate([p['descent_m_s'] for p in pooled]) if pooled else np.zeros(0)
-    f = np.concatenate([p['swing_fraction'] for p in pooled]) if pooled else np.zeros(0)
-    pk = np.concatenate([p['peak_n'] for p in pooled]) if pooled else np.zeros(0)
+    v, f, pk = (np.concatenate([p[k] for p in pooled] + [np.zeros(0)])
+                for k in ('descent_m_s', 'swing_fraction', 'peak_n'))
     if not len(v):
         return {'count': 0}
     return {'count': int(len(v)),
