@@ -28,9 +28,29 @@ def test_stands_ten_seconds_without_drift(name):
     assert abs(T1[2, 3] - m.standing_height_m) < 0.01
     assert robot.foot_contacts(plane).all()
     assert robot.non_foot_contacts(plane) == 0
+    feet_f, legs_f, body_f = robot.contact_forces_by_part()
+    weight = m.total_mass_kg * 9.81
+    assert feet_f.sum() == pytest.approx(weight, rel=0.05) and np.all(feet_f > 0.1 * weight)
+    assert np.all(legs_f == 0.0) and body_f == 0.0
     np.testing.assert_allclose(robot.joint_states()[0], q0, atol=0.01)
     # Camera pose is the base pose composed with the profile's mount.
     np.testing.assert_allclose(robot.camera_pose(), T1 @ m.T_base_camera, atol=1e-12)
+    client.disconnect()
+
+
+def test_contact_forces_by_part_name_the_body_and_a_shank_resting_on_the_ground():
+    """A robot whose motors go limp collapses onto its legs' links and body: the forces say
+    so, and still add up to its weight."""
+    m = load_robot_model('littledog')
+    client, plane = make_flat_world(DT)
+    robot = spawn_standing(client, m, dt_s=DT)
+    robot.set_joint_targets(robot.joint_states()[0], max_force=0.0)
+    for _ in range(int(2.0 / DT)):
+        client.stepSimulation()
+    feet_f, legs_f, body_f = robot.contact_forces_by_part()
+    weight = m.total_mass_kg * 9.81
+    assert feet_f.sum() + legs_f.sum() + body_f == pytest.approx(weight, rel=0.1)
+    assert legs_f.sum() + body_f > 0.5 * weight        # the feet no longer carry it
     client.disconnect()
 
 

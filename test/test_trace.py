@@ -53,6 +53,8 @@ def test_the_trace_records_the_truth_of_a_flat_walk(tmp_path):
     airborne = a['swing_legs'] & (bottom > 0.01)
     assert airborne.sum() > 50
     assert np.all(a['force'][airborne] == 0.0)
+    # Nothing but the feet touches flat ground.
+    assert a['other_force'].shape == (n, 5) and np.all(a['other_force'] == 0.0)
     # On flat ground the controller's stance feet are where the feet really stand.
     stance = ~a['swing_legs']
     off = np.linalg.norm(a['feet'][..., :2] - a['believed_feet'][..., :2], axis=2)[stance]
@@ -80,6 +82,7 @@ def test_the_fall_report_names_a_foot_that_ended_its_swing_in_the_air():
     assert res.fell
     text = fall_report(a, tilt_deg=10.0)
     assert text is not None and 'LF' in text.split('longest run:')[1].split('\n')[0]
+    assert 'legs (hip, thigh, shank) and body on the terrain' in text
     lf_swing = np.flatnonzero(a['swing_legs'][:, LF] & (a['steps_done'] == 5))
     end_of_swing = a['t'][lf_swing[-1]]
     fell = a['t'][np.flatnonzero(np.degrees(np.arccos(

@@ -41,6 +41,13 @@ class SimRobot:
             raise ValueError(f'{model.urdf_path} lacks joints {missing}')
         self.joint_ids = np.array([by_name[n] for n in model.joint_names], dtype=int)
         self.foot_links = np.array([by_name[f'link:{leg}_foot'] for leg in LEG_NAMES], dtype=int)
+        # every other link by leg (hip, thigh, shank) for contact_forces_by_part; the rest
+        # (base, camera, IMU) is the body
+        self._leg_of_link = {by_name[f'link:{leg}_{part}']: k
+                             for k, leg in enumerate(LEG_NAMES)
+                             for part in ('hip', 'thigh', 'shank')
+                             if f'link:{leg}_{part}' in by_name}
+        self._foot_of_link = {int(link): k for k, link in enumerate(self.foot_links)}
         self.camera_link = by_name['link:camera_optical']
         self.imu_link = by_name['link:imu_link']
         self._jids = [int(j) for j in self.joint_ids]
@@ -176,6 +183,27 @@ class SimRobot:
             pts = self.client.getContactPoints(bodyA=self.body_id, linkIndexA=int(link))
             out[k] = sum(p[9] for p in pts)
         return out
+
+    def contact_forces_by_part(self) -> tuple:
+        """Total normal contact force [N] on ``(feet (4,), legs (4,), body)``: the foot
+        spheres, each leg's other links (hip, thigh, shank: a shank resting on a rock), and
+        the body (base and head links). Contacts between the robot's own links are left out.
+        """
+        feet, legs, body = np.zeros(4), np.zeros(4), 0.0
+        for p in self.client.getContactPoints(bodyA=self.body_id):
+            if p[2] == self.body_id:
+                continue
+            link, f = p[3], p[9]
+            k = self._foot_of_link.get(link)
+            if k is not None:
+                feet[k] += f
+                continue
+            k = self._leg_of_link.get(link)
+            if k is not None:
+                legs[k] += f
+            else:
+                body += f
+        return feet, legs, body
 
     def non_foot_contacts(self, other_body: Optional[int] = None) -> int:
         """Number of contact points between the ground/world and anything but the feet."""

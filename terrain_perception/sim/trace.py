@@ -41,8 +41,8 @@ class WalkTrace:
             raise ValueError(f'WalkTrace: every must be >= 1 physics step, got {every}')
         self.every = int(every)
         self._rows: dict = {k: [] for k in (
-            't', 'base_xyz', 'base_rpy', 'com', 'feet', 'force', 'phase', 'swing_legs',
-            'steps_done', 'believed_feet', 'force_estimate', 'body_target')}
+            't', 'base_xyz', 'base_rpy', 'com', 'feet', 'force', 'other_force', 'phase',
+            'swing_legs', 'steps_done', 'believed_feet', 'force_estimate', 'body_target')}
         self._n = 0
 
     def sample(self, t: float, client, robot, controller, masses: np.ndarray) -> None:
@@ -63,7 +63,9 @@ class WalkTrace:
         r['base_rpy'].append(client.getEulerFromQuaternion(quat))
         r['com'].append(com_world(client, robot, masses))
         r['feet'].append(robot.foot_positions_world())
-        r['force'].append(robot.foot_contact_forces())
+        feet_f, legs_f, body_f = robot.contact_forces_by_part()
+        r['force'].append(feet_f)
+        r['other_force'].append(np.append(legs_f, body_f))
         r['phase'].append(0 if ph is None else PHASES.index(ph.kind))
         r['swing_legs'].append(legs)
         r['steps_done'].append(controller.steps_done)
@@ -79,11 +81,12 @@ class WalkTrace:
         """Columns as arrays: t (n,), base_xyz, base_rpy [rad], com (n, 3); feet (foot-sphere
         centres), believed_feet (controller's stance contact points, in the map: its
         ``T_map_odom`` applied) (n, 4, 3);
-        force (true normal force), force_estimate (n, 4) [N]; phase (n,) index into
+        force (true normal force), force_estimate (n, 4) [N]; other_force (n, 5) [N]: the
+        true normal force on each leg's other links (hip, thigh, shank) and on the body; phase (n,) index into
         :data:`PHASES`; swing_legs (n, 4) bool; steps_done (n,); body_target (n, 3)."""
         shapes = {'feet': (4, 3), 'believed_feet': (4, 3), 'force': (4,),
-                  'force_estimate': (4,), 'swing_legs': (4,), 'base_xyz': (3,),
-                  'base_rpy': (3,), 'com': (3,), 'body_target': (3,)}
+                  'other_force': (5,), 'force_estimate': (4,), 'swing_legs': (4,),
+                  'base_xyz': (3,), 'base_rpy': (3,), 'com': (3,), 'body_target': (3,)}
         out = {}
         for k, rows in self._rows.items():
             a = np.asarray(rows)
@@ -206,11 +209,20 @@ def fall_report(trace: Union[dict, str, Path], window_s: float = 2.0,
             hits.append(f'{LEG_NAMES[leg]} {f.max():.0f} N at t = {t[j]:.2f}')
     lines.append(f'swing feet that met the ground with more than the robot\'s weight '
                  f'({weight:.0f} N): ' + (', '.join(hits) if hits else 'none'))
+    other = tr.get('other_force')          # traces before session 34 lack it
+    if other is not None and len(other):
+        parts = [f'{n} leg' for n in LEG_NAMES] + ['body']
+        touch = other[win] > LOADED_N
+        said = [f'{parts[k]} {touch[:, k].mean() * 100:.0f} % of the time (peak '
+                f'{other[win, k].max():.0f} N)' for k in range(5) if touch[:, k].any()]
+        lines.append(f'legs (hip, thigh, shank) and body on the terrain in the {window_s:.1f} s '
+                     f'before the fall: ' + (', '.join(said) if said else 'none'))
     off = np.linalg.norm(tr['feet'][i_fall, :, :2] - tr['believed_feet'][i_fall, :, :2], axis=1)
     lines.append('believed vs true foot x-y offset at the fall [mm]: ' + ', '.join(
         f'{LEG_NAMES[k]} {off[k] * 1000:.0f}' for k in range(4)))
     lines.append(f'{"t":>7} {"x":>6} {"roll":>6} {"pitch":>6} {"phase":<11} '
-                 f'{"true force LF RF LH RH [N]":<27} {"estimate [N]":<27} {"COM marg mm":>11}')
+                 f'{"true force LF RF LH RH [N]":<27} {"estimate [N]":<27} {"COM marg mm":>11}'
+                 + (f' {"legs+body on terrain [N]":>30}' if other is not None else ''))
     step = max(1, int(round(table_every_s / dt))) if dt > 0 else 1
     rows = sorted(set(win[::step].tolist()) | set(win[t[win] >= t_fall - 0.3].tolist()))
     for i in rows:
@@ -220,7 +232,9 @@ def fall_report(trace: Union[dict, str, Path], window_s: float = 2.0,
                      f'{phase[i] + " " + legs_of(tr["swing_legs"][i]):<11} '
                      + ' '.join(f'{f:6.1f}' for f in tr['force'][i]) + ' '
                      + ' '.join(f'{f:6.1f}' for f in tr['force_estimate'][i])
-                     + (f' {m * 1000:+11.1f}' if np.isfinite(m) else f' {"-":>11}'))
+                     + (f' {m * 1000:+11.1f}' if np.isfinite(m) else f' {"-":>11}')
+                     + (' ' + ' '.join(f'{f:5.1f}' for f in other[i]) if other is not None
+                        else ''))
     return '\n'.join(lines)
 
 
