@@ -192,3 +192,27 @@ def test_landings_measure_the_touchdown_speed_place_in_the_swing_and_force():
     # a swing that never meets the ground is no touchdown
     soft['force'][:, LF] = 0.0
     assert landings(soft)['leg'].size == 0 and landing_summary([soft], 27.0) == {'count': 0}
+
+
+def test_the_fall_report_names_the_body_resting_on_the_terrain():
+    """The walk runner's other fall, the body touching the terrain with the base still level:
+    reported from the row the body force shows, with the legs' links that touched before; a
+    trace whose bench meta says it fell without a row showing it (the runner checks every
+    physics step, the trace samples fewer) is reported at its last row."""
+    tr = _one_swing_trace(0.5, 20.0)
+    n = len(tr['t'])
+    tr['feet'][:, :, :2] = [[0.1, 0.06], [0.1, -0.06], [-0.1, 0.06], [-0.1, -0.06]]
+    tr.update(base_rpy=np.zeros((n, 3)), base_xyz=np.zeros((n, 3)), com=np.zeros((n, 3)),
+              phase=np.full(n, PHASES.index('shift')), steps_done=np.zeros(n, int),
+              force_estimate=tr['force'].copy(), believed_feet=tr['feet'].copy(),
+              other_force=np.zeros((n, 5)))
+    assert fall_report(tr) is None
+    tr['other_force'][60:, 3] = 5.0
+    tr['other_force'][70:, 4] = 12.0
+    text = fall_report(tr)
+    assert text.startswith('fell at t = 0.70 s') and 'the body on the terrain with 12.0 N' in text
+    assert 'RH leg 15 % of the time (peak 5 N), body 1 % of the time (peak 12 N)' in text
+    tr['other_force'][:] = 0.0
+    tr['meta_fell'] = np.asarray(True)
+    text = fall_report(tr)
+    assert text.startswith('fell at t = 0.99 s') and 'just after this row' in text

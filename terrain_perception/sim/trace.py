@@ -153,7 +153,9 @@ def hanging_runs(trace: dict, rows: np.ndarray, min_s: float = 0.1) -> dict:
 def fall_report(trace: Union[dict, str, Path], window_s: float = 2.0,
                 table_every_s: float = 0.1, tilt_deg: float = FALL_TILT_DEG
                 ) -> Optional[str]:
-    """How a traced walk fell, or None if its base tilt never exceeded ``tilt_deg``.
+    """How a traced walk fell, or None if its base tilt never exceeded ``tilt_deg``, its body
+    never touched the terrain (the walk runner's other fall: the belly on a rock) and its
+    ``meta_fell`` (saved by the bench) does not say it fell.
 
     The text names the fall time and place, the phase, the last moment the COM was inside the
     polygon of the feet that carried weight and which feet those were, the stance feet (not
@@ -166,10 +168,22 @@ def fall_report(trace: Union[dict, str, Path], window_s: float = 2.0,
     if not len(t):
         raise ValueError('fall_report: the trace is empty')
     tilt = _tilt_deg(tr['base_rpy'])
-    over = np.flatnonzero(tilt > tilt_deg)
-    if not len(over):
+    other = tr.get('other_force')          # traces before session 34 lack it
+    # the walk runner's other fall: the body touching the terrain (the belly on a rock)
+    belly = other[:, 4] > LOADED_N if other is not None and len(other) else np.zeros(len(t), bool)
+    over = np.flatnonzero((tilt > tilt_deg) | belly)
+    if len(over):
+        i_fall = int(over[0])
+        how = (f'tilt {tilt[i_fall]:.1f} deg' if tilt[i_fall] > tilt_deg else
+               f'the body on the terrain with {other[i_fall, 4]:.1f} N, tilt '
+               f'{tilt[i_fall]:.1f} deg')
+    elif bool(tr.get('meta_fell', False)):
+        # the runner saw the body touch between the last sampled row and its stop
+        i_fall = len(t) - 1
+        how = (f'the body touched the terrain just after this row (the walk runner\'s test), '
+               f'tilt {tilt[i_fall]:.1f} deg')
+    else:
         return None
-    i_fall = int(over[0])
     t_fall = float(t[i_fall])
     win = np.flatnonzero((t >= t_fall - window_s) & (t <= t_fall))
     margin = com_margin(tr)
@@ -179,8 +193,7 @@ def fall_report(trace: Union[dict, str, Path], window_s: float = 2.0,
     def legs_of(mask) -> str:
         return '+'.join(LEG_NAMES[k] for k in range(4) if mask[k]) or '-'
 
-    lines = [f'fell at t = {t_fall:.2f} s, x = {tr["base_xyz"][i_fall, 0]:.3f} m (tilt '
-             f'{tilt[i_fall]:.1f} deg), step {int(tr["steps_done"][i_fall])}, during a '
+    lines = [f'fell at t = {t_fall:.2f} s, x = {tr["base_xyz"][i_fall, 0]:.3f} m ({how}), step {int(tr["steps_done"][i_fall])}, during a '
              f'{phase[i_fall]} of {legs_of(tr["swing_legs"][i_fall])}']
     inside = win[np.nan_to_num(margin[win], nan=-1.0) > 0.0]
     if len(inside):
@@ -209,7 +222,6 @@ def fall_report(trace: Union[dict, str, Path], window_s: float = 2.0,
             hits.append(f'{LEG_NAMES[leg]} {f.max():.0f} N at t = {t[j]:.2f}')
     lines.append(f'swing feet that met the ground with more than the robot\'s weight '
                  f'({weight:.0f} N): ' + (', '.join(hits) if hits else 'none'))
-    other = tr.get('other_force')          # traces before session 34 lack it
     if other is not None and len(other):
         parts = [f'{n} leg' for n in LEG_NAMES] + ['body']
         touch = other[win] > LOADED_N
