@@ -150,14 +150,6 @@ class WalkingConfig:
     swing_approach_speed_m_s: float = param(
         0.15, 'Descent speed of that final approach; below contact_max_descent_m_s so a '
         'contact during it counts [m/s]', 0.01, 1.0)
-    swing_profile_slope: float = param(
-        0.0, 'A swing follows the terrain under its path instead of crossing at one apex over '
-        'the highest point: at each point of the traverse the foot clears the terrain within '
-        'its corridor by terrain_clearance_m (and stays swing height above the footholds), '
-        'rising towards a rock no steeper than this rise over run, so a foot lifting near a '
-        'high rock ahead is not pulled up against its hip first (rocks-12cm ground-truth '
-        'seeds 0 and 3 stalled: every LF step out of reach at lift-off, the flat apex 5 mm '
-        'under the hip). 0 = off: one flat apex [-]', 0.0, 10.0)
     early_touchdown_fraction: float = param(0.75, 'Contact after this fraction of a swing ends '
                                             'the swing where the foot is: the ground is higher '
                                             'than planned [-]', 0.5, 1.0)
@@ -1336,12 +1328,9 @@ class WalkingController:
                     lead += np.sign(along) * min(excess, abs(along)) * ahead
             if np.any(lead):
                 lift_xy = lead
-        profile = self._profile(p0, p1) if c.swing_profile_slope > 0.0 else None
-        if profile is not None:
-            apex = float(profile.max())
         return gaitlib.SwingTrajectory(p0, p1, apex, dur, approach_m=c.swing_approach_m,
                                        approach_speed_m_s=c.swing_approach_speed_m_s,
-                                       lift_xy=lift_xy, profile_z=profile)
+                                       lift_xy=lift_xy)
 
     def _make_swing(self, step: _Step, t0: float) -> Optional[_Segment]:
         m = self.model
@@ -1401,22 +1390,6 @@ class WalkingController:
                                       min_lift_m=self.model.swing_height_m)
         ends = np.array([[a[0], a[1], apex_map], [b[0], b[1], apex_map]])
         return float(transform_points(invert(T), ends)[:, 2].max())
-
-    def _profile(self, p0: np.ndarray, p1: np.ndarray) -> Optional[np.ndarray]:
-        """The terrain-following traverse heights (odom z) of a swing from ``p0`` to ``p1``
-        (odom): :func:`gait.swing_profile` on the (map-frame) height map, each point put
-        back in odom; None without a map."""
-        if self.height is None:
-            return None
-        T = self.T_map_odom
-        a, b = transform_points(T, p0[None])[0], transform_points(T, p1[None])[0]
-        prof = gaitlib.swing_profile(a, b, self.height, self.clearance_m,
-                                     corridor_m=1.5 * self.model.foot_radius_m,
-                                     min_lift_m=self.model.swing_height_m,
-                                     slope=self.config.swing_profile_slope)
-        u = np.linspace(0.0, 1.0, len(prof))
-        pts = np.column_stack([a[:2] + u[:, None] * (b[:2] - a[:2]), prof])
-        return transform_points(invert(T), pts)[:, 2]
 
     def _build(self, t0: float, dur: float, kind: str, body_fn, feet_fn,
                rolling: Optional[np.ndarray] = None) -> Optional[_Segment]:

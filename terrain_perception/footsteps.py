@@ -229,15 +229,6 @@ class PlannerConfig:
         'goal-less walks turned 35-60 deg in 42 s) [m]', 0.0, 100.0)
     recovery: bool = param(True, 'when stuck, retry with other legs first, short/backward '
                            're-placing steps and half the margin (named in the status)')
-    refused_foothold_retries: int = param(
-        0, 'plan_checked: when the executor\'s dry run refuses a step of the plan (e.g. a '
-        'swing whose path over a rock leaves the leg\'s reach: rocks-12cm ground-truth seeds '
-        '0 and 3 stalled 60 s re-placing LH because every plan\'s LF step was refused), plan '
-        'again with that foothold excluded for that leg (and every foothold within '
-        'refused_foothold_radius_m of it), up to this many times, and keep the plan with the '
-        'most accepted steps (0 = off: only other legs first and the recovery) [-]', 0, 32)
-    refused_foothold_radius_m: float = param(
-        0.02, 'radius of that exclusion around a refused foothold [m]', 0.0, 0.5)
     goal_tolerance_m: float = param(0.03, 'body within this distance of the goal = reached [m]',
                                     0.0, 10.0)
     selection: str = param('cost', "foothold choice: 'cost' (this planner), or the benchmark "
@@ -585,8 +576,6 @@ class FootstepPlanner:
         self.allowed: Optional[np.ndarray] = None
         self._rng = np.random.default_rng(config.random_seed)
         self._refusal_check = None      # set by plan_checked while it runs the recovery
-        # (leg, x-y) footholds plan_checked's dry run refused, excluded while it replans
-        self._excluded: List[Tuple[int, np.ndarray]] = []
         # Without a goal: the line to walk along, (origin (2,), unit direction (2,)) in the map.
         self.straight_line: Optional[Tuple[np.ndarray, np.ndarray]] = None
         # The body box's underside, sampled every <= 2 cm, in base_link; the map's heights
@@ -908,9 +897,6 @@ class FootstepPlanner:
         plan = self.plan(T_map_base, goal_xy, feet=feet, patches=patches, first_leg=first_leg)
         if not plan.ok or plan.gait != GAIT_WALK or not plan.footsteps:
             return plan
-        if self.cfg.refused_foothold_retries > 0:
-            plan = self._excluding_refused(plan, check, T_map_base, goal_xy, feet, patches,
-                                           first_leg)
         first = plan.footsteps[0].leg
         refusal = ''
         for leg in [first] + [lg for lg in CRAWL_ORDER if lg != first]:
@@ -942,36 +928,6 @@ class FootstepPlanner:
                 p.status_text = f'{why}; {p.status_text}'
                 return p
         return failed(STATUS_NO_FOOTHOLD, why)
-
-    def _excluding_refused(self, plan: FootstepPlan, check, T_map_base, goal_xy, feet,
-                           patches, first_leg) -> FootstepPlan:
-        """``plan``, or a replan with the footholds the dry run ``check`` refused excluded
-        (``refused_foothold_retries``): the one with the most accepted steps (ties: the
-        earlier, cheaper one). Not cut here: :meth:`_checked_prefix` does that."""
-        best, best_n, p, refused = plan, -1, plan, []
-        try:
-            for attempt in range(self.cfg.refused_foothold_retries + 1):
-                legs = np.array([f.leg for f in p.footsteps])
-                pos = np.array([f.position for f in p.footsteps])
-                n, _ = check(legs, pos)
-                if n > best_n:
-                    best, best_n = p, n
-                if n >= len(legs) or attempt == self.cfg.refused_foothold_retries:
-                    break
-                self._excluded.append((int(legs[n]), pos[n, :2].copy()))
-                refused.append(f'{LEG_NAMES[int(legs[n])]} ({pos[n, 0]:.3f}, {pos[n, 1]:.3f})')
-                p = self.plan(T_map_base, goal_xy, feet=feet, patches=patches,
-                              first_leg=first_leg)
-                if not p.ok or p.gait != GAIT_WALK or not p.footsteps:
-                    break
-        finally:
-            self._excluded = []
-        if best is not plan:
-            note = (f'replanned without footholds the controller would refuse: '
-                    f'{", ".join(refused)}')
-            best.check_note = note + ('; ' + best.check_note if best.check_note else '')
-            best.status_text = note + '; ' + best.status_text
-        return best
 
     @staticmethod
     def _checked_prefix(plan: FootstepPlan, check) -> Tuple[int, str]:
@@ -1259,14 +1215,6 @@ class FootstepPlanner:
         if found[0] is None:
             return None, found[1]
         pts, u, v, ij, centre = found
-        if self._excluded:
-            keep = np.ones(len(pts), dtype=bool)
-            for lg, xy in self._excluded:
-                if lg == leg:
-                    keep &= np.hypot(*(pts[:, :2] - xy).T) > cfg.refused_foothold_radius_m
-            if not np.any(keep):
-                return None, 'only footholds the controller would refuse in its search area'
-            pts, u, v, ij = pts[keep], u[keep], v[keep], ij[keep]
         # The stance's heading after the step (hind feet's midpoint to the front feet's, as
         # the controller sets the body's yaw), against the plan's: a front foot stepping 6 cm
         # round a rock turns it 8 deg, and such steps added up to 60 deg on rocks-12cm (seed 0)

@@ -162,41 +162,6 @@ def swing_apex(p0: np.ndarray, p1: np.ndarray, height: HeightFn, clearance_m: fl
     return float(max(max(p0[2], p1[2]) + min_lift_m, h + clearance_m))
 
 
-def swing_profile(p0: np.ndarray, p1: np.ndarray, height: HeightFn, clearance_m: float,
-                  corridor_m: float, min_lift_m: float, slope: float,
-                  samples: int = 41) -> np.ndarray:
-    """Terrain-following traverse heights [m] of a swing from ``p0`` to ``p1`` (world), at
-    ``samples`` evenly spaced fractions of the straight x-y path (see
-    :attr:`SwingTrajectory.profile_z`).
-
-    At each fraction: the highest terrain within ``corridor_m`` of that point of the path plus
-    ``clearance_m``, and at least ``min_lift_m`` above the foothold heights' interpolation
-    there; then dilated so that it never climbs or drops faster than ``slope`` (rise over run)
-    towards an obstacle: the foot rises before a rock, not at its edge. The maximum is
-    :func:`swing_apex`'s apex; on flat ground the profile is that apex everywhere.
-    """
-    p0, p1 = np.asarray(p0, float), np.asarray(p1, float)
-    if not (slope > 0.0):
-        raise ValueError(f'swing_profile: slope must be > 0, got {slope}')
-    u = np.linspace(0.0, 1.0, int(samples))
-    d = p1[:2] - p0[:2]
-    norm = float(np.linalg.norm(d))
-    line = p0[:2] + u[:, None] * d
-    side = np.array([-d[1], d[0]]) / norm if norm > 1e-9 else np.array([0.0, 1.0])
-    fwd = d / norm if norm > 1e-9 else np.array([1.0, 0.0])
-    offsets = np.array([np.zeros(2), corridor_m * side, -corridor_m * side,
-                        corridor_m * fwd, -corridor_m * fwd,
-                        0.7 * corridor_m * (side + fwd), 0.7 * corridor_m * (side - fwd),
-                        0.7 * corridor_m * (-side + fwd), 0.7 * corridor_m * (-side - fwd)])
-    h = terrain_height(height, line[None] + offsets[:, None]).max(axis=0)
-    need = np.maximum(h + clearance_m, (1.0 - u) * p0[2] + u * p1[2] + min_lift_m)
-    # each sample also covers its neighbours: the foot follows the profile linearly in between
-    need = np.maximum(need, np.maximum(np.r_[need[1:], -np.inf], np.r_[-np.inf, need[:-1]]))
-    # slope-limited dilation: Z(u_i) = max_j need_j - slope * |u_i - u_j| * path length
-    run = slope * norm * np.abs(u[:, None] - u[None, :])
-    return (need[None, :] - run).max(axis=1)
-
-
 @dataclass(frozen=True)
 class SwingTrajectory:
     """Foot path lift -> traverse at the apex -> lower, each part minimum-jerk, then
@@ -215,10 +180,6 @@ class SwingTrajectory:
         by the apex); approach_speed_m_s: its descent speed; lift_xy: the part of the
         horizontal move [m] made during the lift, on the lift's own curve (the foot rises
         diagonally), the rest crossing at the apex as usual; None = all of it at the apex.
-        profile_z: heights [m] the foot follows instead of the flat apex, at evenly spaced
-        fractions of the traverse (``[0]`` at its start, ``[-1]`` at its end; see
-        :func:`swing_profile`): the lift rises to the profile's start, the traverse follows
-        it, the lowering leaves from its end. None = ``apex_z`` everywhere.
     """
 
     p0: np.ndarray
@@ -229,18 +190,12 @@ class SwingTrajectory:
     approach_m: float = 0.0
     approach_speed_m_s: float = 0.1
     lift_xy: Optional[np.ndarray] = None
-    profile_z: Optional[np.ndarray] = None
-
-    @property
-    def end_z(self) -> float:
-        """Height the lowering starts from: the apex, or the profile's end."""
-        return float(self.apex_z if self.profile_z is None else self.profile_z[-1])
 
     @property
     def approach_height_m(self) -> float:
         """The approach's actual height: ``approach_m`` but not above the apex."""
         return float(min(max(self.approach_m, 0.0),
-                         max(self.end_z - float(np.asarray(self.p1)[2]), 0.0)))
+                         max(float(self.apex_z) - float(np.asarray(self.p1)[2]), 0.0)))
 
     @property
     def approach_s(self) -> float:
@@ -270,12 +225,8 @@ class SwingTrajectory:
             lead = np.asarray(self.lift_xy, dtype=np.float64)
             xy = (p0[:2] + up[..., None] * lead
                   + across[..., None] * (p1[:2] - p0[:2] - lead))
-        if self.profile_z is None:
-            top = self.apex_z
-        else:
-            prof = np.asarray(self.profile_z, dtype=np.float64)
-            top = np.interp(across, np.linspace(0.0, 1.0, len(prof)), prof)
-        z = np.where(s < 0.5, p0[2] + up * (top - p0[2]), top + down * (p1[2] + a - top))
+        z = np.where(s < 0.5, p0[2] + up * (self.apex_z - p0[2]),
+                     self.apex_z + down * (p1[2] + a - self.apex_z))
         if a > 0.0:
             z = z - np.clip(t - self.duration_s, 0.0, self.approach_s) * self.approach_speed_m_s
         return np.concatenate([xy, z[..., None]], axis=-1)

@@ -677,43 +677,6 @@ def test_recovery_steps_the_rearmost_foot_before_stepping_others_back():
         cur[s.leg] = s.position
 
 
-def test_plan_checked_replans_around_footholds_the_executor_refuses():
-    """An executor refusing the second step's foothold (and any of that leg's within 1 cm):
-    with refused_foothold_retries the plan keeps its crawl order and all its steps, that leg
-    placed elsewhere (not within the exclusion radius), the status naming the excluded
-    foothold; without, the plan is cut to the first step."""
-    goal = np.array([0.6, 0.0])
-    base = dict(trot_threshold_m=0.0, horizon_steps=4)
-    off = _planner(fs.PlannerConfig(**base), _rocks(5))
-    feet = np.array(ROBOT.nominal_feet)
-    feet[:, 2] = off.grid.sample('elevation', feet[:, :2])
-    full = off.plan(_pose(), goal, feet=feet, first_leg=fs.LH)
-    bad_leg, bad = full.footsteps[1].leg, full.footsteps[1].position.copy()
-
-    def refuse_bad(legs, pos):
-        for k, (lg, p) in enumerate(zip(legs, pos)):
-            if lg == bad_leg and np.hypot(*(p[:2] - bad[:2])) < 0.01:
-                return k, f'{fs.LEG_NAMES[lg]} out of reach'
-        return len(legs), ''
-    cut = off.plan_checked(_pose(), goal, feet, refuse_bad, first_leg=fs.LH)
-    assert cut.ok and len(cut.footsteps) == 1
-    on = _planner(fs.PlannerConfig(**base, refused_foothold_retries=3,
-                                   refused_foothold_radius_m=0.015), _rocks(5))
-    plan = on.plan_checked(_pose(), goal, feet, refuse_bad, first_leg=fs.LH)
-    assert plan.ok and len(plan.footsteps) == 4
-    assert [f.leg for f in plan.footsteps] == [f.leg for f in full.footsteps]
-    moved = plan.footsteps[1].position
-    assert np.hypot(*(moved[:2] - bad[:2])) > 0.015
-    assert 'replanned without footholds the controller would refuse' in plan.status_text
-    assert on._excluded == []                 # the exclusions end with the call
-    # a plan the executor accepts as it is: not replanned
-    same = on.plan_checked(_pose(), goal, feet, lambda legs, pos: (len(legs), ''),
-                           first_leg=fs.LH)
-    assert 'replanned' not in same.status_text
-    for a, b in zip(same.footsteps, full.footsteps):
-        np.testing.assert_allclose(a.position, b.position)
-
-
 def test_plan_checked_falls_back_on_recovery_plans_the_executor_accepts():
     """An executor refusing the first step of every normal plan (each leg first): plan_checked
     returns a relaxed recovery plan whose first step it accepts, saying so; with the recovery
