@@ -216,3 +216,24 @@ def test_the_fall_report_names_the_body_resting_on_the_terrain():
     tr['meta_fell'] = np.asarray(True)
     text = fall_report(tr)
     assert text.startswith('fell at t = 0.99 s') and 'just after this row' in text
+
+
+@pytest.mark.timeout(240)
+def test_rocks_walks_in_worker_processes_end_as_in_one(tmp_path):
+    """terrain-bench sim --workers: the same walks, traces and fall reports as one process
+    (every walk has its own simulator), rows and seeds in order."""
+    from terrain_perception.bench.sim import _rocks_seeds
+    kw = dict(course_class='rocks-6cm', baseline=False, control_rate_hz=50.0,
+              variant={'planner': {}, 'controller': {'touchdown_depth_m': 0.0}})
+    one = _rocks_seeds(2, 0.8, 1.05, 13, trace_dir=str(tmp_path / 'one'), **kw)
+    two = _rocks_seeds(2, 0.8, 1.05, 13, trace_dir=str(tmp_path / 'two'), workers=2, **kw)
+    keys = ('seed', 'advanced_m', 'steps', 'fell', 'status', 'sim_s', 'foot_err_mean_m')
+    for row in ('default', 'variant'):
+        a, b = one['rocks6_seed_rows'][row], two['rocks6_seed_rows'][row]
+        assert [r['seed'] for r in b] == [13, 14]
+        assert [tuple(r[k] for k in keys) for r in a] == [tuple(r[k] for k in keys) for r in b]
+        assert all(r['steps'] >= 4 for r in b)
+        for r, s in zip(a, b):
+            np.testing.assert_array_equal(load_trace(r['trace'])['feet'],
+                                          load_trace(s['trace'])['feet'])
+    assert one['rocks6_seeds'] == two['rocks6_seeds']
