@@ -32,6 +32,7 @@ def test_stands_ten_seconds_without_drift(name):
     weight = m.total_mass_kg * 9.81
     assert feet_f.sum() == pytest.approx(weight, rel=0.05) and np.all(feet_f > 0.1 * weight)
     assert np.all(legs_f == 0.0) and body_f == 0.0
+    np.testing.assert_array_equal(robot.foot_contact_forces(), feet_f)
     np.testing.assert_allclose(robot.joint_states()[0], q0, atol=0.01)
     # Camera pose is the base pose composed with the profile's mount.
     np.testing.assert_allclose(robot.camera_pose(), T1 @ m.T_base_camera, atol=1e-12)

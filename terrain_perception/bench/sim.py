@@ -353,18 +353,18 @@ def _rocks_seeds(n: int, start_x: float, goal_x: float, first: int = 0,
     kw = dict(localise=localise, robot_name=robot_name,
               remember_refusals=remember_refusals, control_rate_hz=control_rate_hz)
     jobs = []                     # (row, seed, keyword arguments of _rocks_walk)
+
+    def add(row: str, seed: int, **extra) -> None:
+        jobs.append((row, seed, {**kw, **extra, 'trace_path': _trace_path(
+            trace_dir, seed, row, course_class)}))
     for seed in seeds:
-        jobs.append(('default', seed, kw))
+        add('default', seed)
         if baseline:
-            jobs.append(('baseline', seed, {**kw, 'planner_kw': ROCKS_BASELINE[0],
-                                            'walking_kw': ROCKS_BASELINE[1]}))
+            add('baseline', seed, planner_kw=ROCKS_BASELINE[0], walking_kw=ROCKS_BASELINE[1])
         if variant is not None:
-            jobs.append(('variant', seed, {
-                **kw, 'planner_kw': variant['planner'], 'walking_kw': variant['controller'],
-                'control_rate_hz': variant.get('control_rate_hz', control_rate_hz)}))
-    jobs = [(row, seed, {**walk_kw, 'trace_path': _trace_path(trace_dir, seed, row,
-                                                               course_class)})
-            for row, seed, walk_kw in jobs]
+            add('variant', seed, planner_kw=variant['planner'],
+                walking_kw=variant['controller'],
+                control_rate_hz=variant.get('control_rate_hz', control_rate_hz))
     args = [(course_class, start_x, goal_x, seed, walk_kw) for _, seed, walk_kw in jobs]
     if workers > 1 and len(jobs) > 1:
         import multiprocessing

@@ -177,12 +177,9 @@ class SimRobot:
         return out
 
     def foot_contact_forces(self) -> np.ndarray:
-        """``(4,)`` total normal contact force on each foot [N]."""
-        out = np.zeros(4)
-        for k, link in enumerate(self.foot_links):
-            pts = self.client.getContactPoints(bodyA=self.body_id, linkIndexA=int(link))
-            out[k] = sum(p[9] for p in pts)
-        return out
+        """``(4,)`` total normal contact force on each foot [N] (from anything but the robot
+        itself; see :meth:`contact_forces_by_part`)."""
+        return self.contact_forces_by_part()[0]
 
     def contact_forces_by_part(self) -> tuple:
         """Total normal contact force [N] on ``(feet (4,), legs (4,), body)``: the foot
