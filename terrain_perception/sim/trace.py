@@ -82,8 +82,9 @@ class WalkTrace:
         centres), believed_feet (controller's stance contact points, in the map: its
         ``T_map_odom`` applied) (n, 4, 3);
         force (true normal force), force_estimate (n, 4) [N]; other_force (n, 5) [N]: the
-        true normal force on each leg's other links (hip, thigh, shank) and on the body; phase (n,) index into
-        :data:`PHASES`; swing_legs (n, 4) bool; steps_done (n,); body_target (n, 3)."""
+        true normal force on each leg's other links (hip, thigh, shank) and on the body;
+        phase (n,) index into :data:`PHASES`; swing_legs (n, 4) bool; steps_done (n,);
+        body_target (n, 3)."""
         shapes = {'feet': (4, 3), 'believed_feet': (4, 3), 'force': (4,),
                   'other_force': (5,), 'force_estimate': (4,), 'swing_legs': (4,),
                   'base_xyz': (3,), 'base_rpy': (3,), 'com': (3,), 'body_target': (3,)}
@@ -169,8 +170,10 @@ def fall_report(trace: Union[dict, str, Path], window_s: float = 2.0,
         raise ValueError('fall_report: the trace is empty')
     tilt = _tilt_deg(tr['base_rpy'])
     other = tr.get('other_force')          # traces before session 34 lack it
+    if other is not None and not len(other):
+        other = None
     # the walk runner's other fall: the body touching the terrain (the belly on a rock)
-    belly = other[:, 4] > LOADED_N if other is not None and len(other) else np.zeros(len(t), bool)
+    belly = other[:, 4] > LOADED_N if other is not None else np.zeros(len(t), bool)
     over = np.flatnonzero((tilt > tilt_deg) | belly)
     if len(over):
         i_fall = int(over[0])
@@ -193,8 +196,9 @@ def fall_report(trace: Union[dict, str, Path], window_s: float = 2.0,
     def legs_of(mask) -> str:
         return '+'.join(LEG_NAMES[k] for k in range(4) if mask[k]) or '-'
 
-    lines = [f'fell at t = {t_fall:.2f} s, x = {tr["base_xyz"][i_fall, 0]:.3f} m ({how}), step {int(tr["steps_done"][i_fall])}, during a '
-             f'{phase[i_fall]} of {legs_of(tr["swing_legs"][i_fall])}']
+    lines = [f'fell at t = {t_fall:.2f} s, x = {tr["base_xyz"][i_fall, 0]:.3f} m ({how}), '
+             f'step {int(tr["steps_done"][i_fall])}, during a {phase[i_fall]} of '
+             f'{legs_of(tr["swing_legs"][i_fall])}']
     inside = win[np.nan_to_num(margin[win], nan=-1.0) > 0.0]
     if len(inside):
         j = int(inside[-1])
@@ -222,7 +226,7 @@ def fall_report(trace: Union[dict, str, Path], window_s: float = 2.0,
             hits.append(f'{LEG_NAMES[leg]} {f.max():.0f} N at t = {t[j]:.2f}')
     lines.append(f'swing feet that met the ground with more than the robot\'s weight '
                  f'({weight:.0f} N): ' + (', '.join(hits) if hits else 'none'))
-    if other is not None and len(other):
+    if other is not None:
         parts = [f'{n} leg' for n in LEG_NAMES] + ['body']
         touch = other[win] > LOADED_N
         said = [f'{parts[k]} {touch[:, k].mean() * 100:.0f} % of the time (peak '
