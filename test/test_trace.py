@@ -5,6 +5,7 @@ import numpy as np
 import pytest
 
 from terrain_perception import gait as G
+from terrain_perception import kinematics as K
 from terrain_perception.controller import WalkingConfig
 from terrain_perception.robot_model import load_robot_model
 from terrain_perception.sim.trace import (PHASES, WalkTrace, fall_report, hanging_runs,
@@ -55,6 +56,11 @@ def test_the_trace_records_the_truth_of_a_flat_walk(tmp_path):
     assert np.all(a['force'][airborne] == 0.0)
     # Nothing but the feet touches flat ground.
     assert a['other_force'].shape == (n, 5) and np.all(a['other_force'] == 0.0)
+    # The measured joint angles and motor torques: the feet's forces computed from them
+    # (kinematics.foot_forces, what the controller does at its own ticks) are the true ones.
+    assert a['q'].shape == (n, 12) and a['tau'].shape == (n, 12)
+    est = K.foot_forces(m, a['q'].reshape(n, 4, 3), a['tau'].reshape(n, 4, 3))[..., 2]
+    assert np.median(np.abs(est - a['force'])[shift]) < 1.5
     # On flat ground the controller's stance feet are where the feet really stand.
     stance = ~a['swing_legs']
     off = np.linalg.norm(a['feet'][..., :2] - a['believed_feet'][..., :2], axis=2)[stance]

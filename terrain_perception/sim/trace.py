@@ -42,7 +42,8 @@ class WalkTrace:
         self.every = int(every)
         self._rows: dict = {k: [] for k in (
             't', 'base_xyz', 'base_rpy', 'com', 'feet', 'force', 'other_force', 'phase',
-            'swing_legs', 'steps_done', 'believed_feet', 'force_estimate', 'body_target')}
+            'swing_legs', 'steps_done', 'believed_feet', 'force_estimate', 'body_target',
+            'q', 'tau')}
         self._n = 0
 
     def sample(self, t: float, client, robot, controller, masses: np.ndarray) -> None:
@@ -73,6 +74,9 @@ class WalkTrace:
                                   else transform_points(controller.T_map_odom, feet))
         r['force_estimate'].append(np.asarray(controller.foot_loads, float))
         r['body_target'].append(controller.map_pose[:3, 3])
+        q, _, tau = robot.joint_states()
+        r['q'].append(q)
+        r['tau'].append(tau)
 
     def __len__(self) -> int:
         return len(self._rows['t'])
@@ -84,10 +88,12 @@ class WalkTrace:
         force (true normal force), force_estimate (n, 4) [N]; other_force (n, 5) [N]: the
         true normal force on each leg's other links (hip, thigh, shank) and on the body;
         phase (n,) index into :data:`PHASES`; swing_legs (n, 4) bool; steps_done (n,);
-        body_target (n, 3)."""
+        body_target (n, 3); q, tau (n, 12): the measured joint angles [rad] and motor
+        torques [N m]."""
         shapes = {'feet': (4, 3), 'believed_feet': (4, 3), 'force': (4,),
                   'other_force': (5,), 'force_estimate': (4,), 'swing_legs': (4,),
-                  'base_xyz': (3,), 'base_rpy': (3,), 'com': (3,), 'body_target': (3,)}
+                  'base_xyz': (3,), 'base_rpy': (3,), 'com': (3,), 'body_target': (3,),
+                  'q': (12,), 'tau': (12,)}
         out = {}
         for k, rows in self._rows.items():
             a = np.asarray(rows)
