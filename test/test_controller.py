@@ -884,3 +884,40 @@ def test_a_body_shift_that_lowers_the_belly_onto_a_rock_is_refused():
     assert check_footsteps(m, WalkingConfig(), nom, *steps, height=block(0.10)) == (4, '')
     assert check_footsteps(m, WalkingConfig(belly_clearance_m=-1.0), nom, *steps,
                            height=block(0.14)) == (4, '')
+
+
+def test_swing_max_speed_stretches_the_swings_not_the_landings():
+    """swing_max_speed_m_s: the swing foot's commanded speed stays under the cap (a fast
+    profile swing exceeds it), the swings last longer, and the feet still land on the
+    footsteps."""
+    m = load_robot_model('littledog')
+    T0 = make_T(rot_z(0.0), [0.0, 0.0, m.standing_height_m])
+    legs, pos = G.straight_footsteps(m, T0, 0.3)
+    out = {}
+    for cap in (0.0, 0.4):
+        ctl = WalkingController(m, WalkingConfig(plan_timeout_s=1e3, touchdown_depth_m=0.0,
+                                                 swing_max_speed_m_s=cap))
+        ctl.reset(0.0, None, T0)
+        ctl.set_footsteps(legs, pos, 'walk', 0.0)
+        speeds, swing_t, prev = [], [0.0], {}
+
+        def tick(t, cmd, ctl=ctl, speeds=speeds, swing_t=swing_t, prev=prev):
+            ph = ctl.phase
+            feet = _feet_from_command(ctl, cmd)
+            if ph is not None and ph.kind == 'swing':
+                swing_t[0] += DT
+                leg = ph.legs[0]
+                if prev.get('leg') == leg:
+                    speeds.append(np.linalg.norm(feet[leg] - prev['p']) / DT)
+                prev.update(leg=leg, p=feet[leg])
+            else:
+                prev.clear()
+
+        _run(ctl, 0.0, 200.0, tick)
+        assert ctl.last_error == '' and ctl.steps_done == len(legs)
+        # rolling feet shift the stance by millimetres (as in the crawl test)
+        np.testing.assert_allclose(ctl.feet[legs[-1]], pos[-1], atol=0.3 * m.foot_radius_m)
+        out[cap] = (max(speeds), swing_t[0])
+    assert out[0.0][0] > 0.6                      # the profile's 0.35 s swings
+    assert out[0.4][0] < 0.4 * 1.1                # finite differences of the splines
+    assert out[0.4][1] > 1.5 * out[0.0][1]
