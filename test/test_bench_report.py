@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import json
 
+import pytest
+
 from terrain_perception.bench import _report
 
 
@@ -37,16 +39,45 @@ def test_sim_rocks_variant_is_parsed_and_bad_ones_refused_by_name(capsys):
     from terrain_perception.bench.sim import parse_rocks_variant
     assert parse_rocks_variant('') is None
     v = parse_rocks_variant('{"planner": {"stride_centre": "rule"}}')
-    assert v == {'planner': {'stride_centre': 'rule'}, 'controller': {}}
+    assert v == {'planner': {'stride_centre': 'rule'}, 'controller': {}, 'sim': {}}
     assert parse_rocks_variant('{"control_rate_hz": 50}') == {
-        'planner': {}, 'controller': {}, 'control_rate_hz': 50.0}
+        'planner': {}, 'controller': {}, 'sim': {}, 'control_rate_hz': 50.0}
+    assert parse_rocks_variant('{"sim": {"friction": 2}}')['sim'] == {'friction': 2}
     for text, words in (('{"planner": ', 'not JSON'),
                         ('{"walker": {}}', 'must be an object'),
                         ('{"control_rate_hz": -5}', 'positive number'),
-                        ('{"controller": {"no_such_gain": 1}}', 'no_such_gain')):
+                        ('{"controller": {"no_such_gain": 1}}', 'no_such_gain'),
+                        ('{"sim": {"gravity": 1}}', 'gravity'),
+                        ('{"sim": {"friction": 0}}', 'positive number'),
+                        ('{"sim": {"foot_contact_stiffness": 3e4}}', 'go together')):
         rc = runner.main(['sim', '--rocks-only', '--rocks-seeds', '1', '--rocks-variant', text])
         assert rc == 2
         assert words in capsys.readouterr().err
+
+
+def test_a_sim_variant_changes_the_world_of_the_walk_and_only_it():
+    """--rocks-variant's "sim" section: the terrain's friction and the feet's compliant
+    contact are what the simulator then uses; without it the defaults."""
+    from terrain_perception.bench.sim import _walk_session
+    from terrain_perception.sim.world import WorldConfig
+    from terrain_perception.terrain import make_course
+    course = make_course('rocks-6cm', 0, 0.01)
+    for sim, friction, contact in (
+            (None, WorldConfig().friction, None),
+            ({'friction': 2.0, 'foot_contact_stiffness': 3e4, 'foot_contact_damping': 300.0},
+             2.0, (3e4, 300.0))):
+        s = _walk_session(course, 'littledog', 0.4, 0, sim)
+        try:
+            c, robot = s.client, s.robot
+            assert c.getDynamicsInfo(s.world.terrain_id, -1)[1] == pytest.approx(friction)
+            for link in robot.foot_links:
+                info = c.getDynamicsInfo(robot.body_id, int(link))
+                if contact is None:
+                    assert info[9] < 0 or info[9] > 1e9     # rigid (pybullet: -1 or huge)
+                else:
+                    assert (info[9], info[8]) == pytest.approx(contact)
+        finally:
+            s.close()
 
 
 def test_closed_loop_trials_record_a_bag_only_when_asked():

@@ -135,11 +135,32 @@ def _flat_walk(robot: str, distance_m: float, gait: str = 'walk') -> dict:
 STALL_S = 60.0   # the closed loop's default --stall-time
 
 
+def _walk_session(course, robot_name: str, start_x: float, seed: int,
+                  sim_kw: Optional[dict] = None):
+    """The :class:`SimSession` of a ground-truth walk, with ``sim_kw``'s changes of the world
+    (:data:`SIM_VARIANT_KEYS`) applied."""
+    from terrain_perception.sim.session import SimSession, SimSessionConfig
+    from terrain_perception.sim.world import WorldConfig
+    sim_kw = dict(sim_kw or {})
+    world_cfg = WorldConfig(**({'friction': float(sim_kw['friction'])} if 'friction' in sim_kw
+                               else {}))
+    session = SimSession(SimSessionConfig(robot=robot_name, start_x_m=start_x, settle_s=0.3,
+                                          course_seed=seed), course=course,
+                         world_cfg=world_cfg)
+    if 'foot_contact_stiffness' in sim_kw:
+        for link in session.robot.foot_links:
+            session.client.changeDynamics(
+                session.robot.body_id, int(link),
+                contactStiffness=float(sim_kw['foot_contact_stiffness']),
+                contactDamping=float(sim_kw['foot_contact_damping']))
+    return session
+
+
 def _rocks_walk(course, start_x: float, goal_x: float, seed: int, sensing: bool = True,
                 planner_kw: Optional[dict] = None, walking_kw: Optional[dict] = None,
                 trace_path=None, localise: bool = True, robot_name: str = 'littledog',
-                remember_refusals: bool = False, control_rate_hz: Optional[float] = None
-                ) -> dict:
+                remember_refusals: bool = False, control_rate_hz: Optional[float] = None,
+                sim_kw: Optional[dict] = None) -> dict:
     """Robot ``robot_name`` walks ``course`` from ``start_x`` towards ``goal_x`` on footsteps
     planned on the true terrain (receding horizon, every plan dry-run through the controller's
     checks).
@@ -157,14 +178,14 @@ def _rocks_walk(course, start_x: float, goal_x: float, seed: int, sensing: bool 
     dry run accepted it is not offered again from that stance (:class:`RefusedSteps`, as the
     planner node does); without it the same plan is offered again and the walk ends after 3
     refusals in a row. ``control_rate_hz``: :class:`WalkRunner`'s (None: every physics
-    step)."""
+    step). ``sim_kw`` changes the simulated world for a diagnosis (:data:`SIM_VARIANT_KEYS`):
+    ``friction`` of the terrain and floor, ``foot_contact_stiffness`` [N/m] and
+    ``foot_contact_damping`` [N s/m] of the feet (pybullet's compliant contact; rigid without)."""
     from terrain_perception.sim.trace import WalkTrace, fall_report
     from terrain_perception.footsteps import PlannerConfig, FootstepPlanner, RefusedSteps
-    from terrain_perception.sim.session import SimSession, SimSessionConfig
     from terrain_perception.sim.walk import WalkRunner
     m = load_robot_model(robot_name)
-    session = SimSession(SimSessionConfig(robot=robot_name, start_x_m=start_x, settle_s=0.3,
-                                          course_seed=seed), course=course)
+    session = _walk_session(course, robot_name, start_x, seed, sim_kw)
     try:
         client, robot, world = session.client, session.robot, session.world
         height = world.height_at
@@ -275,22 +296,41 @@ def _rocks_walk(course, start_x: float, goal_x: float, seed: int, sensing: bool 
             'rtf_walk': res.sim_time_s / wall}
 
 
+#: The ``sim`` section of ``--rocks-variant``: changes of the simulated world, for diagnoses.
+SIM_VARIANT_KEYS = ('friction', 'foot_contact_stiffness', 'foot_contact_damping')
+
+
 def parse_rocks_variant(text: str) -> Optional[dict]:
-    """``--rocks-variant``: ``{"planner": {...}, "controller": {...}, "control_rate_hz": HZ}``
-    (any of them) or None if empty; ValueError naming the problem otherwise (unknown sections
-    or parameters included)."""
+    """``--rocks-variant``: ``{"planner": {...}, "controller": {...}, "sim": {...},
+    "control_rate_hz": HZ}`` (any of them) or None if empty; ValueError naming the problem
+    otherwise (unknown sections or parameters included). ``sim`` (:data:`SIM_VARIANT_KEYS`)
+    changes the simulated world, not the robot's software: a diagnosis, e.g. whether more
+    friction or compliant feet change the outcome."""
     if not text:
         return None
     try:
         v = json.loads(text)
     except json.JSONDecodeError as exc:
         raise ValueError(f'--rocks-variant is not JSON: {exc}') from None
-    sections = {'planner', 'controller'}
+    sections = {'planner', 'controller', 'sim'}
     if not isinstance(v, dict) or not v or set(v) - sections - {'control_rate_hz'} or \
             not all(isinstance(v[k], dict) for k in sections & set(v)):
-        raise ValueError('--rocks-variant must be an object with "planner" and/or '
-                         '"controller" objects of parameters and/or a "control_rate_hz", got '
+        raise ValueError('--rocks-variant must be an object with "planner", "controller" '
+                         'and/or "sim" objects of parameters and/or a "control_rate_hz", got '
                          f'{text!r}')
+    sim = dict(v.get('sim', {}))
+    unknown = set(sim) - set(SIM_VARIANT_KEYS)
+    if unknown:
+        raise ValueError(f'--rocks-variant: "sim" has no parameter(s) {sorted(unknown)}; '
+                         f'known: {list(SIM_VARIANT_KEYS)}')
+    for key, val in sim.items():
+        if isinstance(val, bool) or not (isinstance(val, (int, float)) and np.isfinite(val)
+                                         and val > 0):
+            raise ValueError(f'--rocks-variant: sim {key} must be a positive number, got '
+                             f'{val!r}')
+    if ('foot_contact_stiffness' in sim) != ('foot_contact_damping' in sim):
+        raise ValueError('--rocks-variant: sim foot_contact_stiffness and '
+                         'foot_contact_damping go together (pybullet needs both)')
     rate = v.get('control_rate_hz')
     if rate is not None and not (isinstance(rate, (int, float)) and np.isfinite(rate)
                                  and rate > 0):
@@ -303,7 +343,8 @@ def parse_rocks_variant(text: str) -> Optional[dict]:
         if unknown:
             raise ValueError(f'--rocks-variant: {cls.__name__} has no parameter(s) '
                              f'{sorted(unknown)}')
-    out = {'planner': dict(v.get('planner', {})), 'controller': dict(v.get('controller', {}))}
+    out = {'planner': dict(v.get('planner', {})), 'controller': dict(v.get('controller', {})),
+           'sim': sim}
     if rate is not None:
         out['control_rate_hz'] = float(rate)
     return out
@@ -363,7 +404,7 @@ def _rocks_seeds(n: int, start_x: float, goal_x: float, first: int = 0,
             add('baseline', seed, planner_kw=ROCKS_BASELINE[0], walking_kw=ROCKS_BASELINE[1])
         if variant is not None:
             add('variant', seed, planner_kw=variant['planner'],
-                walking_kw=variant['controller'],
+                walking_kw=variant['controller'], sim_kw=variant.get('sim') or None,
                 control_rate_hz=variant.get('control_rate_hz', control_rate_hz))
     args = [(course_class, start_x, goal_x, seed, walk_kw) for _, seed, walk_kw in jobs]
     if workers > 1 and len(jobs) > 1:
@@ -388,7 +429,9 @@ def _rocks_seeds(n: int, start_x: float, goal_x: float, first: int = 0,
           + (f'; variant: the defaults with planner {variant["planner"]}, controller '
              f'{variant["controller"]}'
              + (f', controller at {variant["control_rate_hz"]:g} Hz'
-                if variant.get('control_rate_hz') else '') if variant is not None else ''))
+                if variant.get('control_rate_hz') else '')
+             + (f', simulated world {variant["sim"]}' if variant.get('sim') else '')
+             if variant is not None else ''))
     summary = {}
     for name, rs in rows.items():
         crossed = [r['reached'] and not r['fell'] for r in rs]
