@@ -55,7 +55,7 @@ def test_sim_rocks_variant_is_parsed_and_bad_ones_refused_by_name(capsys):
         assert words in capsys.readouterr().err
 
 
-def test_a_sim_variant_changes_the_world_of_the_walk_and_only_it():
+def test_a_sim_variant_sets_the_friction_and_the_feet_contact_of_the_walk():
     """--rocks-variant's "sim" section: the terrain's friction and the feet's compliant
     contact are what the simulator then uses; without it the defaults."""
     from terrain_perception.bench.sim import _walk_session

@@ -889,7 +889,7 @@ def test_a_body_shift_that_lowers_the_belly_onto_a_rock_is_refused():
 def test_swing_max_speed_stretches_the_swings_not_the_landings():
     """swing_max_speed_m_s: the swing foot's commanded speed stays under the cap (a fast
     profile swing exceeds it), the swings last longer, and the feet still land on the
-    footsteps."""
+    footsteps (within the millimetres the stance feet roll)."""
     m = load_robot_model('littledog')
     T0 = make_T(rot_z(0.0), [0.0, 0.0, m.standing_height_m])
     legs, pos = G.straight_footsteps(m, T0, 0.3)

@@ -138,7 +138,8 @@ STALL_S = 60.0   # the closed loop's default --stall-time
 def _walk_session(course, robot_name: str, start_x: float, seed: int,
                   sim_kw: Optional[dict] = None):
     """The :class:`SimSession` of a ground-truth walk, with ``sim_kw``'s changes of the world
-    (:data:`SIM_VARIANT_KEYS`) applied."""
+    (:data:`SIM_VARIANT_KEYS`) applied: the friction when the world is built, the feet's
+    contact once the session has settled the robot on its rigid feet."""
     from terrain_perception.sim.session import SimSession, SimSessionConfig
     from terrain_perception.sim.world import WorldConfig
     sim_kw = dict(sim_kw or {})
