@@ -1389,18 +1389,17 @@ class WalkingController:
         return seg
 
     def _swing_time_for_speed(self, legs, targets: np.ndarray, apexes) -> float:
-        """Shortest swing [s] whose lift, traverse and lowering (each minimum-jerk, peak
-        speed 1.875 x distance / time) stay under ``swing_max_speed_m_s``; 0 when off."""
+        """Shortest swing [s] whose lift, traverse and lowering stay under
+        ``swing_max_speed_m_s``; 0 when off."""
         vmax = self.config.swing_max_speed_m_s
         if vmax <= 0.0:
             return 0.0
-        f = gaitlib.SwingTrajectory.lift_fraction
         need = 0.0
         for k, leg in enumerate(legs):
             p0, p1 = self._feet[leg], np.asarray(targets[k], dtype=float)
-            vert = max(apexes[k] - p0[2], apexes[k] - p1[2], 0.0)
-            horiz = float(np.hypot(*(p1[:2] - p0[:2])))
-            need = max(need, 1.875 * vert / (f * vmax), 1.875 * horiz / ((1.0 - 1.2 * f) * vmax))
+            need = max(need, gaitlib.SwingTrajectory.duration_for_speed(
+                max(apexes[k] - p0[2], apexes[k] - p1[2], 0.0),
+                float(np.hypot(*(p1[:2] - p0[:2]))), vmax))
         return need
 
     def _apex(self, p0: np.ndarray, p1: np.ndarray) -> float:

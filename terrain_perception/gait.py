@@ -191,6 +191,16 @@ class SwingTrajectory:
     approach_speed_m_s: float = 0.1
     lift_xy: Optional[np.ndarray] = None
 
+    @staticmethod
+    def duration_for_speed(vertical_m: float, horizontal_m: float, max_speed_m_s: float,
+                           lift_fraction: float = 0.25) -> float:
+        """Shortest ``duration_s`` whose lift and lowering (at most ``vertical_m`` each) and
+        traverse (``horizontal_m``) stay under ``max_speed_m_s``: each part is minimum-jerk,
+        peak speed 1.875 x distance / time, the vertical parts ``lift_fraction`` of the
+        duration each and the traverse ``1 - 1.2 lift_fraction`` (:meth:`position`)."""
+        f = float(lift_fraction)
+        return 1.875 * max(vertical_m / f, horizontal_m / (1.0 - 1.2 * f)) / max_speed_m_s
+
     @property
     def approach_height_m(self) -> float:
         """The approach's actual height: ``approach_m`` but not above the apex."""
