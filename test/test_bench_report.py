@@ -39,17 +39,23 @@ def test_sim_rocks_variant_is_parsed_and_bad_ones_refused_by_name(capsys):
     from terrain_perception.bench.sim import parse_rocks_variant
     assert parse_rocks_variant('') is None
     v = parse_rocks_variant('{"planner": {"stride_centre": "rule"}}')
-    assert v == {'planner': {'stride_centre': 'rule'}, 'controller': {}, 'sim': {}}
+    assert v == {'planner': {'stride_centre': 'rule'}, 'controller': {}, 'sim': {},
+                 'course': {}}
     assert parse_rocks_variant('{"control_rate_hz": 50}') == {
-        'planner': {}, 'controller': {}, 'sim': {}, 'control_rate_hz': 50.0}
+        'planner': {}, 'controller': {}, 'sim': {}, 'course': {}, 'control_rate_hz': 50.0}
     assert parse_rocks_variant('{"sim": {"friction": 2}}')['sim'] == {'friction': 2}
+    assert parse_rocks_variant('{"course": {"max_height_m": 0.09}}')['course'] == {
+        'max_height_m': 0.09}
     for text, words in (('{"planner": ', 'not JSON'),
                         ('{"walker": {}}', 'must be an object'),
                         ('{"control_rate_hz": -5}', 'positive number'),
                         ('{"controller": {"no_such_gain": 1}}', 'no_such_gain'),
                         ('{"sim": {"gravity": 1}}', 'gravity'),
                         ('{"sim": {"friction": 0}}', 'positive number'),
-                        ('{"sim": {"foot_contact_stiffness": 3e4}}', 'go together')):
+                        ('{"sim": {"foot_contact_stiffness": 3e4}}', 'go together'),
+                        ('{"course": {"width_m": 1}}', 'width_m'),
+                        ('{"course": {"max_height_m": -0.1}}', 'height in (0, 0.5]'),
+                        ('{"course": {"max_height_m": "9cm"}}', 'height in (0, 0.5]')):
         rc = runner.main(['sim', '--rocks-only', '--rocks-seeds', '1', '--rocks-variant', text])
         assert rc == 2
         assert words in capsys.readouterr().err
@@ -78,6 +84,31 @@ def test_a_sim_variant_sets_the_friction_and_the_feet_contact_of_the_walk():
                     assert (info[9], info[8]) == pytest.approx(contact)
         finally:
             s.close()
+
+
+def test_a_course_variant_walks_the_same_rocks_scaled_to_its_peak(monkeypatch):
+    """--rocks-variant's "course" section: the variant row's walk gets the class's terrain
+    with the peak height changed (the same seed's layout scaled), the default row the
+    class's own."""
+    from terrain_perception.bench import sim as B
+    import numpy as np
+    from terrain_perception.terrain import ELEVATION
+    walked = {}
+
+    def fake_walk(course, start_x, goal_x, seed, **kw):
+        walked[kw['trace_path'] or 'row'] = course
+        return {}
+    monkeypatch.setattr(B, '_rocks_walk', fake_walk)
+    B._rocks_job(('rocks-12cm', 0.4, 2.4, 3, {'trace_path': 'default'}))
+    B._rocks_job(('rocks-12cm', 0.4, 2.4, 3, {'trace_path': 'variant'},
+                  {'max_height_m': 0.09}))
+    d, v = (walked[k].layers[ELEVATION] for k in ('default', 'variant'))
+    assert float(d.max()) == pytest.approx(0.12, abs=1e-4)
+    assert float(v.max()) == pytest.approx(0.09, abs=1e-4)
+    assert walked['variant'].metadata['max_height_m'] == pytest.approx(0.09)
+    # the same rocks, scaled: heights proportional where the default has any
+    rock = d > 0.01
+    assert np.allclose(v[rock] / d[rock], 0.75, atol=0.02)
 
 
 def test_closed_loop_trials_record_a_bag_only_when_asked():

@@ -48,7 +48,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('--rocks-variant', type=str, default='', metavar='JSON',
                         help='also walk the rocks seeds with these overrides of the defaults, '
                         'e.g. \'{"planner": {"stride_centre": "rule"}, "controller": '
-                        '{"shift_zmp_offset_m": 0.008}}\' (a third row, "variant")')
+                        '{"shift_zmp_offset_m": 0.008}}\' (a third row, "variant"); '
+                        '"sim": {...} changes the simulated world (friction, the feet\'s '
+                        'contact), "course": {"max_height_m": H} the terrain (the same rocks '
+                        'scaled to peak H)')
     parser.add_argument('--no-baseline', action='store_true',
                         help='leave out the rocks walks\' baseline row (the defaults against '
                         'a --rocks-variant only)')
@@ -299,26 +302,31 @@ def _rocks_walk(course, start_x: float, goal_x: float, seed: int, sensing: bool 
 
 #: The ``sim`` section of ``--rocks-variant``: changes of the simulated world, for diagnoses.
 SIM_VARIANT_KEYS = ('friction', 'foot_contact_stiffness', 'foot_contact_damping')
+#: The ``course`` section of ``--rocks-variant``: the course class's terrain changed for the
+#: variant row (same seeds, so the same rock layout, scaled): how outcomes depend on it.
+COURSE_VARIANT_KEYS = ('max_height_m',)
 
 
 def parse_rocks_variant(text: str) -> Optional[dict]:
     """``--rocks-variant``: ``{"planner": {...}, "controller": {...}, "sim": {...},
-    "control_rate_hz": HZ}`` (any of them) or None if empty; ValueError naming the problem
-    otherwise (unknown sections or parameters included). ``sim`` (:data:`SIM_VARIANT_KEYS`)
-    changes the simulated world, not the robot's software: a diagnosis, e.g. whether more
-    friction or compliant feet change the outcome."""
+    "course": {...}, "control_rate_hz": HZ}`` (any of them) or None if empty; ValueError
+    naming the problem otherwise (unknown sections or parameters included). ``sim``
+    (:data:`SIM_VARIANT_KEYS`) changes the simulated world, not the robot's software: a
+    diagnosis, e.g. whether more friction or compliant feet change the outcome. ``course``
+    (:data:`COURSE_VARIANT_KEYS`) changes the terrain: the same seeds' rocks scaled to another
+    peak height, for how the outcome depends on the terrain's height."""
     if not text:
         return None
     try:
         v = json.loads(text)
     except json.JSONDecodeError as exc:
         raise ValueError(f'--rocks-variant is not JSON: {exc}') from None
-    sections = {'planner', 'controller', 'sim'}
+    sections = {'planner', 'controller', 'sim', 'course'}
     if not isinstance(v, dict) or not v or set(v) - sections - {'control_rate_hz'} or \
             not all(isinstance(v[k], dict) for k in sections & set(v)):
-        raise ValueError('--rocks-variant must be an object with "planner", "controller" '
-                         'and/or "sim" objects of parameters and/or a "control_rate_hz", got '
-                         f'{text!r}')
+        raise ValueError('--rocks-variant must be an object with "planner", "controller", '
+                         '"sim" and/or "course" objects of parameters and/or a '
+                         f'"control_rate_hz", got {text!r}')
     sim = dict(v.get('sim', {}))
     unknown = set(sim) - set(SIM_VARIANT_KEYS)
     if unknown:
@@ -332,6 +340,16 @@ def parse_rocks_variant(text: str) -> Optional[dict]:
     if ('foot_contact_stiffness' in sim) != ('foot_contact_damping' in sim):
         raise ValueError('--rocks-variant: sim foot_contact_stiffness and '
                          'foot_contact_damping go together (pybullet needs both)')
+    course = dict(v.get('course', {}))
+    unknown = set(course) - set(COURSE_VARIANT_KEYS)
+    if unknown:
+        raise ValueError(f'--rocks-variant: "course" has no parameter(s) {sorted(unknown)}; '
+                         f'known: {list(COURSE_VARIANT_KEYS)}')
+    peak = course.get('max_height_m')
+    if peak is not None and (isinstance(peak, bool) or not isinstance(peak, (int, float))
+                             or not 0.0 < peak <= 0.5):
+        raise ValueError(f'--rocks-variant: course max_height_m must be a height in (0, 0.5] '
+                         f'm, got {peak!r}')
     rate = v.get('control_rate_hz')
     if rate is not None and not (isinstance(rate, (int, float)) and np.isfinite(rate)
                                  and rate > 0):
@@ -345,7 +363,7 @@ def parse_rocks_variant(text: str) -> Optional[dict]:
             raise ValueError(f'--rocks-variant: {cls.__name__} has no parameter(s) '
                              f'{sorted(unknown)}')
     out = {'planner': dict(v.get('planner', {})), 'controller': dict(v.get('controller', {})),
-           'sim': sim}
+           'sim': sim, 'course': course}
     if rate is not None:
         out['control_rate_hz'] = float(rate)
     return out
@@ -369,10 +387,14 @@ def _print_fall_reports(walks) -> None:
 
 def _rocks_job(args: tuple) -> dict:
     """One :func:`_rocks_walk` of ``(course class, start x, goal x, seed, keyword
-    arguments)``, the course made here (a worker process's job)."""
-    from terrain_perception.terrain import make_course
-    course_class, start_x, goal_x, seed, walk_kw = args
-    return _rocks_walk(make_course(course_class, seed, 0.005), start_x, goal_x, seed,
+    arguments[, course overrides])``, the course made here (a worker process's job); the
+    overrides (:data:`COURSE_VARIANT_KEYS`) replace fields of the class's CourseConfig."""
+    import dataclasses
+    from terrain_perception.terrain import course_config, make_course
+    course_class, start_x, goal_x, seed, walk_kw = args[:5]
+    changes = args[5] if len(args) > 5 else None
+    cfg = dataclasses.replace(course_config(course_class), **changes) if changes else None
+    return _rocks_walk(make_course(course_class, seed, 0.005, cfg), start_x, goal_x, seed,
                        **walk_kw)
 
 
@@ -394,11 +416,11 @@ def _rocks_seeds(n: int, start_x: float, goal_x: float, first: int = 0,
     seeds = list(range(first, first + n))
     kw = dict(localise=localise, robot_name=robot_name,
               remember_refusals=remember_refusals, control_rate_hz=control_rate_hz)
-    jobs = []                     # (row, seed, keyword arguments of _rocks_walk)
+    jobs = []          # (row, seed, keyword arguments of _rocks_walk, course overrides)
 
-    def add(row: str, seed: int, **extra) -> None:
+    def add(row: str, seed: int, course=None, **extra) -> None:
         jobs.append((row, seed, {**kw, **extra, 'trace_path': _trace_path(
-            trace_dir, seed, row, course_class)}))
+            trace_dir, seed, row, course_class)}, course or None))
     for seed in seeds:
         add('default', seed)
         if baseline:
@@ -406,8 +428,10 @@ def _rocks_seeds(n: int, start_x: float, goal_x: float, first: int = 0,
         if variant is not None:
             add('variant', seed, planner_kw=variant['planner'],
                 walking_kw=variant['controller'], sim_kw=variant.get('sim') or None,
-                control_rate_hz=variant.get('control_rate_hz', control_rate_hz))
-    args = [(course_class, start_x, goal_x, seed, walk_kw) for _, seed, walk_kw in jobs]
+                control_rate_hz=variant.get('control_rate_hz', control_rate_hz),
+                course=variant.get('course'))
+    args = [(course_class, start_x, goal_x, seed, walk_kw, course)
+            for _, seed, walk_kw, course in jobs]
     if workers > 1 and len(jobs) > 1:
         import multiprocessing
         # spawn: a fresh interpreter per worker, nothing of this process's state (a pybullet
@@ -416,7 +440,7 @@ def _rocks_seeds(n: int, start_x: float, goal_x: float, first: int = 0,
             results = pool.map(_rocks_job, args, chunksize=1)
     else:
         results = [_rocks_job(a) for a in args]
-    for (row, _, _), r in zip(jobs, results):
+    for (row, _, _, _), r in zip(jobs, results):
         rows[row].append(r)
     print(f'\n{course_class} ({robot_name}), ground-truth footsteps'
           f'{", localised" if localise else ""}'
@@ -432,6 +456,7 @@ def _rocks_seeds(n: int, start_x: float, goal_x: float, first: int = 0,
              + (f', controller at {variant["control_rate_hz"]:g} Hz'
                 if variant.get('control_rate_hz') else '')
              + (f', simulated world {variant["sim"]}' if variant.get('sim') else '')
+             + (f', course {variant["course"]}' if variant.get('course') else '')
              if variant is not None else ''))
     summary = {}
     for name, rs in rows.items():
@@ -469,7 +494,7 @@ def _rocks_seeds(n: int, start_x: float, goal_x: float, first: int = 0,
     # the keys keep their rocks-6cm names (the results of earlier sessions); 'course' and
     # 'robot' say what was walked
     return {'rocks6_seeds': summary, 'rocks6_seed_rows': rows, 'rocks_localised': localise,
-            'course': course_class, 'robot': robot_name}
+            'course': course_class, 'robot': robot_name, 'variant': variant}
 
 
 def run(args: argparse.Namespace) -> dict:
