@@ -53,6 +53,7 @@ def test_sim_rocks_variant_is_parsed_and_bad_ones_refused_by_name(capsys):
                         ('{"sim": {"gravity": 1}}', 'gravity'),
                         ('{"sim": {"friction": 0}}', 'positive number'),
                         ('{"sim": {"foot_contact_stiffness": 3e4}}', 'go together'),
+                        ('{"sim": {"servo_kp_nm_per_rad": 20}}', 'go together'),
                         ('{"course": {"width_m": 1}}', 'width_m'),
                         ('{"course": {"max_height_m": -0.1}}', 'height in (0, 0.5]'),
                         ('{"course": {"max_height_m": "9cm"}}', 'height in (0, 0.5]')):
@@ -62,8 +63,10 @@ def test_sim_rocks_variant_is_parsed_and_bad_ones_refused_by_name(capsys):
 
 
 def test_a_sim_variant_sets_the_friction_and_the_feet_contact_of_the_walk():
-    """--rocks-variant's "sim" section: the terrain's friction and the feet's compliant
-    contact are what the simulator then uses; without it the defaults."""
+    """--rocks-variant's "sim" section: the terrain's friction, the feet's compliant
+    contact and the joints' PD servos are what the simulator then uses; without it the
+    defaults."""
+    import numpy as np
     from terrain_perception.bench.sim import _walk_session
     from terrain_perception.sim.world import WorldConfig
     from terrain_perception.terrain import make_course
@@ -84,6 +87,22 @@ def test_a_sim_variant_sets_the_friction_and_the_feet_contact_of_the_walk():
                     assert (info[9], info[8]) == pytest.approx(contact)
         finally:
             s.close()
+    # pybullet's position servo gains replace the profile's
+    s = _walk_session(course, 'littledog', 0.4, 0, {'velocity_gain': 0.3})
+    try:
+        assert (s.robot.model.position_gain, s.robot.model.velocity_gain) == (0.3, 0.3)
+    finally:
+        s.close()
+    # the joints' PD servos: the reported torques are the PD law's on the session's targets
+    s = _walk_session(course, 'littledog', 0.4, 0, {'servo_kp_nm_per_rad': 20.0,
+                                                    'servo_kd_nm_s_per_rad': 0.15})
+    try:
+        s.step(100)
+        q, dq, tau = s.robot.joint_states()
+        assert np.abs(tau).max() > 0.1        # they hold the robot up
+        np.testing.assert_allclose(tau, 20.0 * (s.q_target - q) - 0.15 * dq, atol=0.05)
+    finally:
+        s.close()
 
 
 def test_a_course_variant_walks_the_same_rocks_scaled_to_its_peak(monkeypatch):

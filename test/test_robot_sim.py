@@ -250,3 +250,40 @@ def test_touchdown_sensing_lowers_a_hanging_foot_before_the_next_swing():
     blind, _, _ = _surprise_walk(-0.02, sensing=False)
     # measured: 7.5 vs 21.4 deg
     assert res.max_tilt_deg < 0.5 * blind.max_tilt_deg
+
+
+def test_a_pd_servo_deflects_under_load_by_its_stiffness_and_reports_its_torques():
+    """SimRobot.use_pd_servo: the joints obey tau = kp (q* - q) + kd (dq* - dq), so a standing
+    robot sinks more on softer servos, the reported torques are the applied ones (the foot
+    forces computed from them carry the robot's weight), and pybullet's position servo,
+    which does not deflect, stays the default."""
+    from terrain_perception import kinematics
+    m = load_robot_model('littledog')
+    weight = m.total_mass_kg * 9.81
+    sink = {}
+    for kp in (None, 40.0, 10.0):
+        client, plane = make_flat_world(DT)
+        robot = spawn_standing(client, m, dt_s=DT)
+        q0 = robot.joint_states()[0]
+        if kp is not None:
+            robot.use_pd_servo(kp, 0.1)
+        for _ in range(int(1.0 / DT)):
+            robot.set_joint_targets(q0)
+            client.stepSimulation()
+        q, dq, tau = robot.joint_states()
+        sink[kp] = m.standing_height_m - robot.base_pose()[2, 3]
+        if kp is not None:
+            np.testing.assert_allclose(tau, np.clip(kp * (q0 - q) - 0.1 * dq, -m.max_torque_nm,
+                                                    m.max_torque_nm), atol=0.02)
+            J = kinematics.jacobian(m, q.reshape(4, 3))
+            fz = kinematics.foot_forces(m, q.reshape(4, 3), tau.reshape(4, 3), J)[:, 2]
+            # each foot's force from the torques is the simulator's contact force, but for
+            # the leg's own weight the estimate neglects (~0.9 N a leg)
+            np.testing.assert_allclose(fz, robot.foot_contact_forces(), atol=1.5)
+            assert robot.foot_contact_forces().sum() == pytest.approx(weight, rel=0.02)
+        assert robot.foot_contacts(plane).all() and robot.base_tilt_deg() < 1.0
+        client.disconnect()
+    assert abs(sink[None]) < 5e-4
+    assert 0.0 < sink[40.0] < sink[10.0] < 0.01
+    with pytest.raises(ValueError, match='kp > 0'):
+        robot.use_pd_servo(0.0, 0.1)

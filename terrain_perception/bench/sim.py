@@ -142,7 +142,9 @@ def _walk_session(course, robot_name: str, start_x: float, seed: int,
                   sim_kw: Optional[dict] = None):
     """The :class:`SimSession` of a ground-truth walk, with ``sim_kw``'s changes of the world
     (:data:`SIM_VARIANT_KEYS`) applied: the friction when the world is built, the feet's
-    contact once the session has settled the robot on its rigid feet."""
+    contact, pybullet's position servo gains (the profile's ``position_gain``,
+    ``velocity_gain``) or the joints' PD servos (:meth:`SimRobot.use_pd_servo`) once the
+    session has settled the robot on its rigid feet and the profile's servos."""
     from terrain_perception.sim.session import SimSession, SimSessionConfig
     from terrain_perception.sim.world import WorldConfig
     sim_kw = dict(sim_kw or {})
@@ -157,6 +159,13 @@ def _walk_session(course, robot_name: str, start_x: float, seed: int,
                 session.robot.body_id, int(link),
                 contactStiffness=float(sim_kw['foot_contact_stiffness']),
                 contactDamping=float(sim_kw['foot_contact_damping']))
+    gains = {k: float(sim_kw[k]) for k in ('position_gain', 'velocity_gain') if k in sim_kw}
+    if gains:
+        import dataclasses
+        session.robot.model = dataclasses.replace(session.robot.model, **gains)
+    if 'servo_kp_nm_per_rad' in sim_kw:
+        session.robot.use_pd_servo(sim_kw['servo_kp_nm_per_rad'],
+                                   sim_kw['servo_kd_nm_s_per_rad'])
     return session
 
 
@@ -301,7 +310,9 @@ def _rocks_walk(course, start_x: float, goal_x: float, seed: int, sensing: bool 
 
 
 #: The ``sim`` section of ``--rocks-variant``: changes of the simulated world, for diagnoses.
-SIM_VARIANT_KEYS = ('friction', 'foot_contact_stiffness', 'foot_contact_damping')
+SIM_VARIANT_KEYS = ('friction', 'foot_contact_stiffness', 'foot_contact_damping',
+                    'servo_kp_nm_per_rad', 'servo_kd_nm_s_per_rad', 'position_gain',
+                    'velocity_gain')
 #: The ``course`` section of ``--rocks-variant``: the course class's terrain changed for the
 #: variant row (same seeds, so the same rock layout, scaled): how outcomes depend on it.
 COURSE_VARIANT_KEYS = ('max_height_m',)
@@ -340,6 +351,9 @@ def parse_rocks_variant(text: str) -> Optional[dict]:
     if ('foot_contact_stiffness' in sim) != ('foot_contact_damping' in sim):
         raise ValueError('--rocks-variant: sim foot_contact_stiffness and '
                          'foot_contact_damping go together (pybullet needs both)')
+    if ('servo_kp_nm_per_rad' in sim) != ('servo_kd_nm_s_per_rad' in sim):
+        raise ValueError('--rocks-variant: sim servo_kp_nm_per_rad and servo_kd_nm_s_per_rad '
+                         'go together (the PD servo needs both)')
     course = dict(v.get('course', {}))
     unknown = set(course) - set(COURSE_VARIANT_KEYS)
     if unknown:

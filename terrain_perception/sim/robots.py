@@ -58,6 +58,8 @@ class SimRobot:
         self._get_base = client.getBasePositionAndOrientation
         self._position_control = client.POSITION_CONTROL
         self._gains = {}
+        self._pd: Optional[tuple] = None          # (kp, kd) of use_pd_servo, None = pybullet's
+        self._tau_pd = np.zeros(len(self._jids))  # torques the PD servo applied last
         for link in self.foot_links:
             client.changeDynamics(body_id, int(link), lateralFriction=model.foot_friction,
                                   spinningFriction=0.01, rollingFriction=0.0,
@@ -108,6 +110,9 @@ class SimRobot:
             dq: optional target velocities [rad/s] (default zero).
         """
         q = self._check_q(q)
+        if self._pd is not None and max_force is None and kp is None and kd is None:
+            self._apply_pd(q, self._zeros if dq is None else self._check_q(dq, 'joint velocity'))
+            return
         n = len(self._jids)
         kp = self.model.position_gain if kp is None else float(kp)
         kd = self.model.velocity_gain if kd is None else float(kd)
@@ -120,6 +125,32 @@ class SimRobot:
             self.body_id, self._jids, self._position_control,
             targetPositions=q.tolist(), targetVelocities=dq,
             positionGains=gains[0], velocityGains=gains[1], forces=gains[2])
+
+    def use_pd_servo(self, kp_nm_per_rad: float, kd_nm_s_per_rad: float) -> None:
+        """Model each joint's servo as a PD torque law evaluated at every
+        :meth:`set_joint_targets` (every physics step): ``tau = kp (q* - q) + kd (dq* - dq)``,
+        clipped at the profile's ``max_torque_nm``. pybullet's POSITION_CONTROL (the default)
+        is a velocity constraint that holds any load up to the torque limit without deflecting;
+        a PD servo deflects under load (``tau / kp`` rad), as a real position servo does.
+        :meth:`joint_states` then reports the applied torques."""
+        kp, kd = float(kp_nm_per_rad), float(kd_nm_s_per_rad)
+        if not (np.isfinite(kp) and np.isfinite(kd) and kp > 0.0 and kd >= 0.0):
+            raise ValueError(f'PD servo gains must be kp > 0 and kd >= 0, got kp={kp}, kd={kd}')
+        self._pd = (kp, kd)
+        # release pybullet's motors (they would otherwise hold the joints on their own)
+        self._set_motors(self.body_id, self._jids, self.client.VELOCITY_CONTROL,
+                         targetVelocities=self._zeros, forces=self._zeros)
+
+    def _apply_pd(self, q_target: np.ndarray, dq_target) -> None:
+        states = self._get_joint_states(self.body_id, self._jids)
+        q = np.array([st[0] for st in states])
+        dq = np.array([st[1] for st in states])
+        kp, kd = self._pd
+        f = self.model.max_torque_nm
+        tau = np.clip(kp * (q_target - q) + kd * (np.asarray(dq_target) - dq), -f, f)
+        self._tau_pd = tau
+        self._set_motors(self.body_id, self._jids, self.client.TORQUE_CONTROL,
+                         forces=tau.tolist())
 
     def _check_q(self, q: np.ndarray, what: str = 'joint vector') -> np.ndarray:
         q = np.asarray(q, dtype=float).reshape(-1)
@@ -134,7 +165,8 @@ class SimRobot:
         """``(q, dq, tau)`` each ``(12,)``: angles [rad], rates [rad/s], motor torques [N m]."""
         states = self._get_joint_states(self.body_id, self._jids)
         a = np.array([(s[0], s[1], s[3]) for s in states])
-        return a[:, 0].copy(), a[:, 1].copy(), a[:, 2].copy()
+        tau = a[:, 2].copy() if self._pd is None else self._tau_pd.copy()
+        return a[:, 0].copy(), a[:, 1].copy(), tau
 
     def base_pose(self) -> np.ndarray:
         """``T_world_base`` 4x4."""
