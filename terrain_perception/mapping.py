@@ -1284,6 +1284,11 @@ class IcpMapper:
         """Coarse model points ``(N, 3)`` float64 in ``map`` [m]."""
         return np.asarray(self._model.points).copy()
 
+    def coarse_normals(self) -> np.ndarray:
+        """Unit normals ``(N, 3)`` of :meth:`coarse_points` (what the ICP's point-to-plane
+        residuals use)."""
+        return np.asarray(self._model.normals).copy()
+
     def capture_poses(self) -> Tuple[np.ndarray, np.ndarray]:
         """Stamps ``(K,)`` [s] and camera poses ``T_map_camera`` ``(K, 4, 4)`` kept with the
         map (oldest first)."""

@@ -75,3 +75,22 @@ def test_stereo_variant_parses_name_and_checked_overrides():
     args = parser.parse_args(['--stereo-variant', 'a={"block_size_px": 9}',
                               '--stereo-variant', 'b={}'])
     assert dict(args.stereo_variant) == {'a': {'block_size_px': 9}, 'b': {}}
+
+
+def test_the_basin_mode_finds_the_truth_from_it_and_the_multi_start_beats_the_single_icp():
+    """--basin: starting at the true pose the ICP stays within 1 cm of it; from a prior
+    10 cm off, the best of the starts around it comes back at least as often as the single
+    ICP from the prior (which cannot reach that far on rocks: its correspondences end at
+    a few centimetres)."""
+    p = argparse.ArgumentParser()
+    icp.add_arguments(p)
+    args = p.parse_args(['--terrain', 'rocks-6cm', '--start-x', '0.7', '--distance', '0.8',
+                         '--basin'])
+    args.quick = True                    # the runner's option: half-size images, 10 cm steps
+    seq = icp.build_sequence(args)
+    rows = {r['offset_m']: r for r in icp.icp_basin(seq, offsets=(0.0, 0.10), first=3,
+                                                    every=2, trials=2)['rows']}
+    assert rows[0.0]['trials'] >= 4 and rows[0.10]['trials'] == rows[0.0]['trials']
+    assert rows[0.0]['single_within_1cm'] == 1.0
+    assert rows[0.10]['multi_within_1cm'] >= rows[0.10]['single_within_1cm']
+    assert rows[0.10]['multi_within_1cm'] > 0.0

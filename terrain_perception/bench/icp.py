@@ -73,6 +73,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('--no-alternatives', action='store_true',
                         help='skip the point-to-point and KISS-ICP comparisons')
     parser.add_argument('--no-stereo', action='store_true', help='skip the stereo-cloud run')
+    parser.add_argument('--basin', action='store_true',
+                        help='instead of the walk: how far off a prior ICP still comes back '
+                        'from (the depth clouds of the walk, the coarse model fused at the true '
+                        'poses up to each tested capture): from priors offset by 0-15 cm, the '
+                        'single ICP from the prior against the best fit of 17 starts around it '
+                        '(rings of 5 and 10 cm); the share of trials within 1 cm of the truth')
     parser.add_argument('--stereo-variant', action='append', default=[], metavar='NAME=JSON',
                         type=parse_stereo_variant,
                         help='also map the same stereo images through the stereo pipeline '
@@ -456,7 +462,90 @@ def build_sequence(args: argparse.Namespace) -> Dict[str, object]:
                    for T in T_true]}
 
 
+#: --basin: prior offsets [m], and the starts of the multi-start around the prior (x-y [m])
+BASIN_OFFSETS = (0.0, 0.03, 0.06, 0.10, 0.15)
+BASIN_STARTS = np.array([[0.0, 0.0]] + [[r * np.cos(a), r * np.sin(a)] for r in (0.05, 0.10)
+                                        for a in np.arange(8) * np.pi / 4])
+
+
+def icp_basin(seq: Dict[str, object], offsets=BASIN_OFFSETS, first: int = 8, every: int = 4,
+              trials: int = 4, seed: int = 0) -> Dict[str, object]:
+    """ICP's basin along a walk: for captures ``first``, ``first + every``, ... the coarse
+    model is what the captures before fused at their true poses; from the true camera pose
+    shifted ``d`` in a random x-y direction (``trials`` per capture and offset), the
+    constrained ICP from that prior, and the best of :data:`BASIN_STARTS` around it (highest
+    fitness; among fits within 0.02 of it and 10 % of the lowest RMSE, the pose nearest the
+    prior, since the fit cannot tell those apart). Returns per offset the x-y errors [m] of
+    both and their shares within 1 cm."""
+    import open3d as o3d
+    from scipy.spatial import cKDTree
+    T_true, T_bc, clouds, cfg = seq['T_true'], seq['T_bc'], seq['clouds'], seq['config']
+    m = mp.IcpMapper(cfg, T_bc)
+    rng = np.random.default_rng(seed)
+    single = {d: [] for d in offsets}
+    multi = {d: [] for d in offsets}
+    for k, cloud in enumerate(clouds):
+        fine, src = m.prepare(cloud)
+        model = m.coarse_points() if k >= first and (k - first) % every == 0 else np.empty(0)
+        if len(model) and len(src):
+            normals = m.coarse_normals()
+            tree = cKDTree(model)
+            pts = np.asarray(o3d.geometry.PointCloud(o3d.utility.Vector3dVector(src))
+                             .voxel_down_sample(cfg.coarse_voxel_m).points)
+            Tc = T_true[k] @ T_bc
+            for d in offsets:
+                for _ in range(trials):
+                    a = rng.uniform(0.0, 2.0 * np.pi)
+                    T0 = Tc.copy()
+                    T0[:2, 3] += d * np.array([np.cos(a), np.sin(a)])
+                    r0 = mp.constrained_icp(pts, model, normals, tree, T0, cfg)
+                    single[d].append(float(np.linalg.norm(r0.T[:2, 3] - Tc[:2, 3])))
+                    rs = [r0]
+                    for st in BASIN_STARTS[1:]:
+                        T1 = T0.copy()
+                        T1[:2, 3] += st
+                        rs.append(mp.constrained_icp(pts, model, normals, tree, T1, cfg))
+                    fb = max(r.fitness for r in rs)
+                    good = [r for r in rs if r.fitness >= fb - 0.02]
+                    eb = min(r.rmse_m for r in good)
+                    good = [r for r in good if r.rmse_m <= 1.1 * eb + 1e-4]
+                    best = min(good, key=lambda r: np.linalg.norm(r.T[:2, 3] - T0[:2, 3]))
+                    multi[d].append(float(np.linalg.norm(best.T[:2, 3] - Tc[:2, 3])))
+        m.fuse(fine, src, T_true[k] @ T_bc, T_true[k], float(seq['stamps'][k]))
+    rows = []
+    for d in offsets:
+        e, em = np.array(single[d]), np.array(multi[d])
+        rows.append({'offset_m': float(d), 'trials': int(len(e)),
+                     'single_median_m': float(np.median(e)) if len(e) else float('nan'),
+                     'single_within_1cm': float(np.mean(e < 0.01)) if len(e) else float('nan'),
+                     'multi_median_m': float(np.median(em)) if len(em) else float('nan'),
+                     'multi_within_1cm': float(np.mean(em < 0.01)) if len(em) else float('nan')})
+    return {'rows': rows}
+
+
+def run_basin(args: argparse.Namespace) -> dict:
+    seq = build_sequence(args)
+    out = icp_basin(seq)
+    print(f'ICP basin on {args.terrain} (seed {args.seed}), {args.robot}, depth clouds of a '
+          f'{args.distance:.2f} m walk from x = {args.start_x}, model fused at true poses; '
+          f'x-y error after ICP from a prior off by the offset (random direction); multi = '
+          f'best fit of {len(BASIN_STARTS)} starts (rings of 5 and 10 cm around the prior)')
+    print(f'{"offset":>7} {"trials":>7} {"single median":>14} {"within 1 cm":>12} '
+          f'{"multi median":>13} {"within 1 cm":>12}')
+    flat = {}
+    for r in out['rows']:
+        print(f'{r["offset_m"] * 100:5.0f} cm {r["trials"]:>7} '
+              f'{r["single_median_m"] * 1e3:11.1f} mm {r["single_within_1cm"]:>12.2f} '
+              f'{r["multi_median_m"] * 1e3:10.1f} mm {r["multi_within_1cm"]:>12.2f}')
+        key = f'{r["offset_m"] * 100:.0f}cm'
+        flat[f'basin_single_within_1cm_{key}'] = r['single_within_1cm']
+        flat[f'basin_multi_within_1cm_{key}'] = r['multi_within_1cm']
+    return {**flat, 'basin_rows': out['rows'], 'terrain': args.terrain, 'robot': args.robot}
+
+
 def run(args: argparse.Namespace) -> dict:
+    if getattr(args, 'basin', False):
+        return run_basin(args)
     if args.distance < 2.0:
         print('note: the issue asks for a walk of at least 2 m')
     seq = build_sequence(args)
