@@ -287,3 +287,14 @@ def test_a_pd_servo_deflects_under_load_by_its_stiffness_and_reports_its_torques
     assert 0.0 < sink[40.0] < sink[10.0] < 0.01
     with pytest.raises(ValueError, match='kp > 0'):
         robot.use_pd_servo(0.0, 0.1)
+    # explicit gains switch back to pybullet's servo: its torques are reported again
+    client, plane = make_flat_world(DT)
+    robot = spawn_standing(client, m, dt_s=DT)
+    q0 = robot.joint_states()[0]
+    robot.use_pd_servo(40.0, 0.1)
+    robot.set_joint_targets(q0, max_force=m.max_torque_nm)
+    client.stepSimulation()
+    q, _, tau = robot.joint_states()
+    assert not np.allclose(tau, np.clip(40.0 * (q0 - q), -m.max_torque_nm, m.max_torque_nm),
+                           atol=0.02)
+    client.disconnect()

@@ -108,11 +108,17 @@ class SimRobot:
             kp, kd: pybullet position / velocity gains (default: the profile's).
             max_force: torque limit [N m] (default: the profile's ``max_torque_nm``).
             dq: optional target velocities [rad/s] (default zero).
+
+        After :meth:`use_pd_servo` the PD law tracks the targets, unless ``kp``, ``kd`` or
+        ``max_force`` is given: that call (and every later one) uses pybullet's servo again.
         """
         q = self._check_q(q)
-        if self._pd is not None and max_force is None and kp is None and kd is None:
-            self._apply_pd(q, self._zeros if dq is None else self._check_q(dq, 'joint velocity'))
-            return
+        if self._pd is not None:
+            if max_force is None and kp is None and kd is None:
+                self._apply_pd(q, self._zeros if dq is None
+                               else self._check_q(dq, 'joint velocity'))
+                return
+            self._pd = None     # explicit gains or force: pybullet's servo again, from now on
         n = len(self._jids)
         kp = self.model.position_gain if kp is None else float(kp)
         kd = self.model.velocity_gain if kd is None else float(kd)
