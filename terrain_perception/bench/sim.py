@@ -49,9 +49,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help='also walk the rocks seeds with these overrides of the defaults, '
                         'e.g. \'{"planner": {"stride_centre": "rule"}, "controller": '
                         '{"shift_zmp_offset_m": 0.008}}\' (a third row, "variant"); '
-                        '"sim": {...} changes the simulated world (friction, the feet\'s '
-                        'contact), "course": {"max_height_m": H} the terrain (the same rocks '
-                        'scaled to peak H)')
+                        '"sim": {...} changes the simulated world for a diagnosis '
+                        '(friction, foot_contact_stiffness and _damping, position_gain, '
+                        'velocity_gain, servo_kp_nm_per_rad and servo_kd_nm_s_per_rad), '
+                        '"course": {"max_height_m": H} the terrain (the same rocks scaled to '
+                        'peak H)')
     parser.add_argument('--no-baseline', action='store_true',
                         help='leave out the rocks walks\' baseline row (the defaults against '
                         'a --rocks-variant only)')
