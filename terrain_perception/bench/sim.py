@@ -22,6 +22,7 @@ rocks6_advanced_m, rocks6_open_loop_advanced_m, plus per-case details.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import time
 from typing import Optional
@@ -163,7 +164,6 @@ def _walk_session(course, robot_name: str, start_x: float, seed: int,
                 contactDamping=float(sim_kw['foot_contact_damping']))
     gains = {k: float(sim_kw[k]) for k in ('position_gain', 'velocity_gain') if k in sim_kw}
     if gains:
-        import dataclasses
         session.robot.model = dataclasses.replace(session.robot.model, **gains)
     if 'servo_kp_nm_per_rad' in sim_kw:
         session.robot.use_pd_servo(sim_kw['servo_kp_nm_per_rad'],
@@ -405,7 +405,6 @@ def _rocks_job(args: tuple) -> dict:
     """One :func:`_rocks_walk` of ``(course class, start x, goal x, seed, keyword
     arguments[, course overrides])``, the course made here (a worker process's job); the
     overrides (:data:`COURSE_VARIANT_KEYS`) replace fields of the class's CourseConfig."""
-    import dataclasses
     from terrain_perception.terrain import course_config, make_course
     course_class, start_x, goal_x, seed, walk_kw = args[:5]
     changes = args[5] if len(args) > 5 else None
