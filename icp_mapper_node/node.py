@@ -274,6 +274,13 @@ class IcpMapperNode(Node):
             self.counters.bump(_cloud_key(str(exc)), str(exc))
             return
         self.captures += 1
+        if res.multi_start > 0:
+            # relocalisation (after a refusal or a disturbance) left the prior's ICP
+            C = map_frame_correction(res.T_map_base_icp, res.T_map_base_prior)
+            self.get_logger().info(
+                f'relocalisation at {t:.2f} s: start {res.multi_start} fits better than the '
+                f'prior\'s ICP, shift ({1e3 * C[0, 3]:.0f}, {1e3 * C[1, 3]:.0f}) mm from the '
+                f'prior ({"accepted" if res.accepted else res.reason})')
         if not res.accepted:
             self.counters.bump('rejected_alignment', res.reason)
             if 'drift' in res.reason and res.T_map_base_icp is not None:

@@ -512,6 +512,63 @@ def test_flat_ground_keeps_the_prior_in_x_y_yaw():
         assert tilt(cam) < 0.5 * tilt(cam_prior)
 
 
+def test_relocalisation_on_flat_ground_keeps_the_prior():
+    """After a disturbance the mapper also aligns from starts 5 and 10 cm around the prior
+    (multi_start_icp). On a plane every shift fits as well (to stereo noise), so it must keep
+    the prior's ICP: x and y stay at the prior."""
+    g = GridMap.empty(0.005, (-0.5, -1.0), (500, 400))
+    g[ELEVATION] = np.zeros(g.shape)
+    scene = rc.HeightFieldScene(g)
+    rng = np.random.default_rng(5)
+    fb = CAM.fx * 0.03
+    m = mp.IcpMapper(dataclasses.replace(CONFIG, disparity_sigma_px=0.15), T_BC, fb)
+    assert m.update(stereo_noise(cloud_at(scene, T0), fb, 0.15, rng), T0, 0.0).accepted
+    m.note_disturbance(0.5)
+    prior = make_T(np.eye(3), [0.02, -0.015, 0.0]) @ T1
+    u = m.update(stereo_noise(cloud_at(scene, T1), fb, 0.15, rng), prior, 1.0)
+    assert u.accepted and u.multi_start == 0, (u.reason, u.multi_start)
+    assert m.counters['multi_start_alignments'] == 1 and m.counters['multi_start_moved'] == 0
+    np.testing.assert_allclose(u.T_map_base[:2, 3], prior[:2, 3], atol=3e-3)
+
+
+@pytest.fixture(scope='module')
+def stones_walk():
+    """FROG-I's depth clouds along 1 m of stones-15cm (the ICP benchmark's sequence, half-size
+    images, 10 cm steps) with the true poses."""
+    import argparse
+    from terrain_perception.bench import icp as icp_bench
+    p = argparse.ArgumentParser()
+    icp_bench.add_arguments(p)
+    args = p.parse_args(['--terrain', 'stones-15cm', '--robot', 'frog', '--start-x', '1.2',
+                         '--distance', '1.0'])
+    args.quick = True
+    return icp_bench.build_sequence(args)
+
+
+@pytest.mark.parametrize('slip', [(0.0, 0.07), (-0.05, -0.05)])
+def test_relocalisation_finds_a_slide_beyond_the_icp_basin_on_stones(stones_walk, slip):
+    """FROG-I slid 7 cm on the stones; dead reckoning missed it, the IMU saw the drop
+    (note_disturbance). ICP from the prior ends in a wrong minimum about 7 cm off (its basin
+    is ~3 cm); the relocalisation's starts around the prior find the true pose, and the
+    capture is accepted there. Without disturbance or refusal, no multi-start runs."""
+    seq = stones_walk
+    T_true, clouds, k = seq['T_true'], seq['clouds'], 6
+    errors = {}
+    for captures in (5, 0):
+        m = mp.IcpMapper(dataclasses.replace(seq['config'], relocalise_captures=captures),
+                         seq['T_bc'])
+        for j in range(k):
+            assert m.update(clouds[j], T_true[j], float(j)).multi_start == -1
+        odom = make_T(np.eye(3), [-slip[0], -slip[1], 0.0]) @ T_true[k]
+        m.note_disturbance(k - 0.5)
+        u = m.update(clouds[k], odom, float(k))
+        errors[captures] = (u.accepted, u.multi_start,
+                            float(np.linalg.norm(u.T_map_base[:2, 3] - T_true[k][:2, 3])))
+    accepted, start, err = errors[5]
+    assert accepted and start > 0 and err < 3e-3, errors
+    assert errors[0][1] == -1 and errors[0][2] > 0.05, errors
+
+
 def test_depth_weights_follow_the_stereo_noise_model():
     fb, sd, floor = 12.8, 0.15, 1e-4
     w = mp.depth_weights(np.array([0.3, 0.6, 1.2]), fb, sd, floor)
