@@ -77,8 +77,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help='instead of the walk: how far off a prior ICP still comes back '
                         'from (the depth clouds of the walk, the coarse model fused at the true '
                         'poses up to each tested capture): from priors offset by 0-15 cm, the '
-                        'single ICP from the prior against the best fit of 17 starts around it '
-                        '(rings of 5 and 10 cm); the share of trials within 1 cm of the truth')
+                        'single ICP from the prior against the mapper\'s relocalisation '
+                        '(multi_start_icp: starts on rings around the prior, the config\'s '
+                        'relocalise_* parameters); the share of trials within 1 cm of the '
+                        'truth')
+    parser.add_argument('--basin-stereo', action='store_true',
+                        help='--basin on stereo clouds (the simulator\'s rendered pairs through '
+                        'the stereo pipeline, as the robot sees) instead of exact depth')
     parser.add_argument('--stereo-variant', action='append', default=[], metavar='NAME=JSON',
                         type=parse_stereo_variant,
                         help='also map the same stereo images through the stereo pipeline '
@@ -462,10 +467,8 @@ def build_sequence(args: argparse.Namespace) -> Dict[str, object]:
                    for T in T_true]}
 
 
-#: --basin: prior offsets [m], and the starts of the multi-start around the prior (x-y [m])
+#: --basin: prior offsets [m]
 BASIN_OFFSETS = (0.0, 0.03, 0.06, 0.10, 0.15)
-BASIN_STARTS = np.array([[0.0, 0.0]] + [[r * np.cos(a), r * np.sin(a)] for r in (0.05, 0.10)
-                                        for a in np.arange(8) * np.pi / 4])
 
 
 def icp_basin(seq: Dict[str, object], offsets=BASIN_OFFSETS, first: int = 8, every: int = 4,
@@ -473,10 +476,10 @@ def icp_basin(seq: Dict[str, object], offsets=BASIN_OFFSETS, first: int = 8, eve
     """ICP's basin along a walk: for captures ``first``, ``first + every``, ... the coarse
     model is what the captures before fused at their true poses; from the true camera pose
     shifted ``d`` in a random x-y direction (``trials`` per capture and offset), the
-    constrained ICP from that prior, and the best of :data:`BASIN_STARTS` around it (highest
-    fitness; among fits within 0.02 of it and 10 % of the lowest RMSE, the pose nearest the
-    prior, since the fit cannot tell those apart). Returns per offset the x-y errors [m] of
-    both and their shares within 1 cm."""
+    constrained ICP from that prior, and the mapper's relocalisation
+    (:func:`mapping.multi_start_icp`: starts on rings around the prior, the alignment
+    :func:`mapping.choose_alignment` keeps). Returns per offset the x-y errors [m] of both,
+    their shares within 1 cm, and how often the multi-start left the prior's ICP."""
     import open3d as o3d
     from scipy.spatial import cKDTree
     T_true, T_bc, clouds, cfg = seq['T_true'], seq['T_bc'], seq['clouds'], seq['config']
@@ -484,6 +487,7 @@ def icp_basin(seq: Dict[str, object], offsets=BASIN_OFFSETS, first: int = 8, eve
     rng = np.random.default_rng(seed)
     single = {d: [] for d in offsets}
     multi = {d: [] for d in offsets}
+    moved = {d: [] for d in offsets}
     for k, cloud in enumerate(clouds):
         fine, src = m.prepare(cloud)
         model = m.coarse_points() if k >= first and (k - first) % every == 0 else np.empty(0)
@@ -500,17 +504,9 @@ def icp_basin(seq: Dict[str, object], offsets=BASIN_OFFSETS, first: int = 8, eve
                     T0[:2, 3] += d * np.array([np.cos(a), np.sin(a)])
                     r0 = mp.constrained_icp(pts, model, normals, tree, T0, cfg)
                     single[d].append(float(np.linalg.norm(r0.T[:2, 3] - Tc[:2, 3])))
-                    rs = [r0]
-                    for st in BASIN_STARTS[1:]:
-                        T1 = T0.copy()
-                        T1[:2, 3] += st
-                        rs.append(mp.constrained_icp(pts, model, normals, tree, T1, cfg))
-                    fb = max(r.fitness for r in rs)
-                    good = [r for r in rs if r.fitness >= fb - 0.02]
-                    eb = min(r.rmse_m for r in good)
-                    good = [r for r in good if r.rmse_m <= 1.1 * eb + 1e-4]
-                    best = min(good, key=lambda r: np.linalg.norm(r.T[:2, 3] - T0[:2, 3]))
+                    best, i = mp.multi_start_icp(pts, model, normals, tree, T0, cfg, first=r0)
                     multi[d].append(float(np.linalg.norm(best.T[:2, 3] - Tc[:2, 3])))
+                    moved[d].append(i > 0)
         m.fuse(fine, src, T_true[k] @ T_bc, T_true[k], float(seq['stamps'][k]))
     rows = []
     for d in offsets:
@@ -519,28 +515,43 @@ def icp_basin(seq: Dict[str, object], offsets=BASIN_OFFSETS, first: int = 8, eve
                      'single_median_m': float(np.median(e)) if len(e) else float('nan'),
                      'single_within_1cm': float(np.mean(e < 0.01)) if len(e) else float('nan'),
                      'multi_median_m': float(np.median(em)) if len(em) else float('nan'),
-                     'multi_within_1cm': float(np.mean(em < 0.01)) if len(em) else float('nan')})
+                     'multi_within_1cm': float(np.mean(em < 0.01)) if len(em) else float('nan'),
+                     'multi_moved': float(np.mean(moved[d])) if len(em) else float('nan')})
     return {'rows': rows}
 
 
 def run_basin(args: argparse.Namespace) -> dict:
     seq = build_sequence(args)
+    clouds = 'depth'
+    if getattr(args, 'basin_stereo', False):
+        got = stereo_clouds(seq['course'], seq['robot'], seq['T_true'], seq['cam'])
+        if got is None:
+            raise SystemExit('--basin-stereo needs the simulator (pybullet) to render stereo')
+        seq['clouds'] = got[0]
+        seq['config'] = dataclasses.replace(seq['config'], max_range_m=args.stereo_max_range)
+        clouds = 'stereo'
     out = icp_basin(seq)
-    print(f'ICP basin on {args.terrain} (seed {args.seed}), {args.robot}, depth clouds of a '
-          f'{args.distance:.2f} m walk from x = {args.start_x}, model fused at true poses; '
+    cfg = seq['config']
+    print(f'ICP basin on {args.terrain} (seed {args.seed}), {args.robot}, {clouds} clouds of '
+          f'a {args.distance:.2f} m walk from x = {args.start_x}, model fused at true poses; '
           f'x-y error after ICP from a prior off by the offset (random direction); multi = '
-          f'best fit of {len(BASIN_STARTS)} starts (rings of 5 and 10 cm around the prior)')
+          f'the mapper\'s relocalisation (multi_start_icp: {2 * cfg.relocalise_directions} '
+          f'starts on rings of {cfg.relocalise_radius_m * 50:.0f} and '
+          f'{cfg.relocalise_radius_m * 100:.0f} cm, choose_alignment); moved = share of '
+          f'trials where it left the prior\'s ICP')
     print(f'{"offset":>7} {"trials":>7} {"single median":>14} {"within 1 cm":>12} '
-          f'{"multi median":>13} {"within 1 cm":>12}')
+          f'{"multi median":>13} {"within 1 cm":>12} {"moved":>6}')
     flat = {}
     for r in out['rows']:
         print(f'{r["offset_m"] * 100:5.0f} cm {r["trials"]:>7} '
               f'{r["single_median_m"] * 1e3:11.1f} mm {r["single_within_1cm"]:>12.2f} '
-              f'{r["multi_median_m"] * 1e3:10.1f} mm {r["multi_within_1cm"]:>12.2f}')
+              f'{r["multi_median_m"] * 1e3:10.1f} mm {r["multi_within_1cm"]:>12.2f} '
+              f'{r["multi_moved"]:>6.2f}')
         key = f'{r["offset_m"] * 100:.0f}cm'
         flat[f'basin_single_within_1cm_{key}'] = r['single_within_1cm']
         flat[f'basin_multi_within_1cm_{key}'] = r['multi_within_1cm']
-    return {**flat, 'basin_rows': out['rows'], 'terrain': args.terrain, 'robot': args.robot}
+    return {**flat, 'basin_rows': out['rows'], 'terrain': args.terrain, 'robot': args.robot,
+            'clouds': clouds}
 
 
 def run(args: argparse.Namespace) -> dict:
