@@ -28,8 +28,8 @@ nothing here reads a clock.
 from __future__ import annotations
 
 import collections
-import logging
 import dataclasses
+import logging
 from dataclasses import dataclass
 from typing import Deque, Dict, Optional, Tuple
 
@@ -191,8 +191,9 @@ class MapperConfig:
     max_rotation_confirmed_deg: float = param(6.0, 'largest rotation correction [deg] '
                                               'confirmation accepts', 0.0, 180.0)
     relocalise_captures: int = param(
-        5, 'after a correction the drift guard refused, or a disturbance, this many captures '
-        'run ICP also from starts around the prior (multi_start_icp; rings of '
+        5, 'after a correction the drift guard refused, a disturbance, or from a capture whose '
+        'ICP from the prior is a misfit (fitness, residual), this many captures run the '
+        'constrained ICP also from starts around the prior (multi_start_icp; rings of '
         'relocalise_radius_m / 2 and relocalise_radius_m): ICP\'s basin on the stones is about '
         '3 cm, and after a slide it measured once (FROG-I, stones seed 138) the next captures '
         'aligned near the wrong prior and were accepted; 0 = off', 0, 1_000_000)
@@ -1593,6 +1594,11 @@ class IcpMapper:
             dw = depth_weights(src_np[:, 2], self.focal_baseline_px_m, c.disparity_sigma_px,
                                c.depth_sigma_floor_m)
             res = constrained_icp(src_np, model_pts, model_nrm, self._tree, T_cam_prior, c, dw)
+            if c.relocalise_captures > 0 and (res.fitness < c.min_fitness
+                                              or res.rmse_m > self.rmse_limit()):
+                # a misfit from the prior: the prior may be beyond ICP's basin (an unseen
+                # slide); this capture and the next ones search around it
+                self._relocalise_left = max(self._relocalise_left, c.relocalise_captures)
             if self._relocalise_left > 0:
                 self._relocalise_left -= 1
                 res, multi_start = multi_start_icp(src_np, model_pts, model_nrm, self._tree,

@@ -226,8 +226,9 @@ def test_corrections_that_disagree_or_a_robot_standing_still_confirm_nothing(ter
 
 def test_misfit_alignments_rejected_by_fitness_and_by_residual(terrain):
     _, scene = terrain
+    # (the guards alone: relocalisation off; a misfit would start it, tested below)
     loose = dataclasses.replace(CONFIG, max_correction_floor_m=10.0,
-                                max_rotation_floor_deg=180.0)
+                                max_rotation_floor_deg=180.0, relocalise_captures=0)
     # far off: ICP ends where few points find a partner
     m = first_mapper(scene, loose)
     prior = make_T(rpy_to_R(0.0, 0.0, np.radians(40.0)), [0.2, 0.1, 0.0]) @ T1
@@ -567,6 +568,36 @@ def test_relocalisation_finds_a_slide_beyond_the_icp_basin_on_stones(stones_walk
     accepted, start, err = errors[5]
     assert accepted and start > 0 and err < 3e-3, errors
     assert errors[0][1] == -1 and errors[0][2] > 0.05, errors
+
+
+def test_relocalisation_recovers_an_unseen_slide_on_stones(stones_walk):
+    """From the fifth capture on, dead reckoning misses a 7 cm slide and no IMU reported it.
+    ICP from the prior is a misfit (residual), which starts the relocalisation on that capture:
+    it measures the slide, the drift guard refuses it twice and the third capture confirms it;
+    from then on the estimate is within 1 cm. Without relocalisation every capture is refused
+    as a misfit (then for fitness, the robot walking off the model) and stays 7 cm off."""
+    seq = stones_walk
+    T_true, clouds = seq['T_true'], seq['clouds']
+    runs = {}
+    for captures in (5, 0):
+        m = mp.IcpMapper(dataclasses.replace(seq['config'], relocalise_captures=captures),
+                         seq['T_bc'])
+        ups = []
+        for j, cloud in enumerate(clouds):
+            slip = 0.07 if j >= 4 else 0.0
+            odom = make_T(np.eye(3), [0.0, -slip, 0.0]) @ T_true[j]
+            u = m.update(cloud, odom, float(j))
+            ups.append((u, float(np.linalg.norm(u.T_map_base[:2, 3] - T_true[j][:2, 3]))))
+        runs[captures] = (m, ups)
+    m, ups = runs[5]
+    assert [u.accepted for u, _ in ups[4:7]] == [False, False, True], [u.reason for u, _ in ups]
+    assert all('correction' in u.reason and u.multi_start > 0 for u, _ in ups[4:6])
+    assert ups[6][0].confirmed and m.counters['multi_start_moved'] >= 3
+    assert max(e for _, e in ups[6:]) < 0.01, [e for _, e in ups]
+    m_off, ups_off = runs[0]
+    assert not any(u.accepted for u, _ in ups_off[4:])
+    assert min(e for _, e in ups_off[4:]) > 0.06
+    assert m_off.counters['multi_start_alignments'] == 0
 
 
 def test_depth_weights_follow_the_stereo_noise_model():
