@@ -275,7 +275,7 @@ class IcpMapperNode(Node):
             return
         self.captures += 1
         if res.multi_start > 0:
-            # relocalisation (after a refusal or a disturbance) left the prior's ICP
+            # relocalisation (after a refusal, a disturbance or a misfit) left the prior's ICP
             C = map_frame_correction(res.T_map_base_icp, res.T_map_base_prior)
             self.get_logger().info(
                 f'relocalisation at {t:.2f} s: start {res.multi_start} fits better than the '

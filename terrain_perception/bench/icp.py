@@ -83,7 +83,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         'truth')
     parser.add_argument('--basin-stereo', action='store_true',
                         help='--basin on stereo clouds (the simulator\'s rendered pairs through '
-                        'the stereo pipeline, as the robot sees) instead of exact depth')
+                        'the stereo pipeline, as the robot sees) instead of exact depth '
+                        '(implies --basin)')
     parser.add_argument('--stereo-variant', action='append', default=[], metavar='NAME=JSON',
                         type=parse_stereo_variant,
                         help='also map the same stereo images through the stereo pipeline '
@@ -555,7 +556,7 @@ def run_basin(args: argparse.Namespace) -> dict:
 
 
 def run(args: argparse.Namespace) -> dict:
-    if getattr(args, 'basin', False):
+    if getattr(args, 'basin', False) or getattr(args, 'basin_stereo', False):
         return run_basin(args)
     if args.distance < 2.0:
         print('note: the issue asks for a walk of at least 2 m')
