@@ -720,6 +720,21 @@ def _observed_directions(H: np.ndarray, d: np.ndarray, w: np.ndarray, L: float,
     return Vg, eig, 6 - Vg.shape[1]
 
 
+def _plane_matches(src: np.ndarray, model: np.ndarray, model_normals: np.ndarray,
+                   tree: cKDTree, T: np.ndarray, max_dist_m: float):
+    """The source points at pose ``T`` (map frame), the rows of those with a model point
+    within ``max_dist_m``, their nearest model rows, its normals and the point-to-plane
+    residuals ``n . (p - q)`` [m]."""
+    p = transform_points(T, src)
+    dist, idx = tree.query(p, k=1, distance_upper_bound=max_dist_m)
+    ok = np.isfinite(dist)
+    si = np.flatnonzero(ok)
+    mi = idx[ok]
+    n = model_normals[mi]
+    r = np.einsum('ij,ij->i', p[si] - model[mi], n)
+    return p, si, mi, n, r
+
+
 def constrained_icp(src: np.ndarray, model: np.ndarray, model_normals: np.ndarray,
                     tree: cKDTree, T_prior: np.ndarray, config: 'MapperConfig',
                     depth_w: Optional[np.ndarray] = None) -> IcpResult:
@@ -768,14 +783,7 @@ def constrained_icp(src: np.ndarray, model: np.ndarray, model_normals: np.ndarra
     dw = np.ones(n_src) if depth_w is None else np.asarray(depth_w, dtype=np.float64)
 
     def match(T_cur):
-        p = transform_points(T_cur, src)
-        dist, idx = tree.query(p, k=1, distance_upper_bound=c.max_correspondence_m)
-        ok = np.isfinite(dist)
-        si = np.flatnonzero(ok)
-        mi = idx[ok]
-        n = model_normals[mi]
-        r = np.einsum('ij,ij->i', p[si] - model[mi], n)
-        return p, si, mi, n, r
+        return _plane_matches(src, model, model_normals, tree, T_cur, c.max_correspondence_m)
 
     total = 0
     noise_var = 0.0
@@ -845,11 +853,9 @@ def _truncated_residuals(src: np.ndarray, model: np.ndarray, model_normals: np.n
                          tree: cKDTree, T: np.ndarray, max_dist_m: float) -> np.ndarray:
     """Point-to-plane residual [m] of every source point at pose ``T`` (NaN: no model point
     within ``max_dist_m``)."""
-    p = transform_points(T, src)
-    dist, idx = tree.query(p, k=1, distance_upper_bound=max_dist_m)
-    ok = np.isfinite(dist)
+    _, si, _, _, r_matched = _plane_matches(src, model, model_normals, tree, T, max_dist_m)
     r = np.full(len(src), np.nan)
-    r[ok] = np.einsum('ij,ij->i', p[ok] - model[idx[ok]], model_normals[idx[ok]])
+    r[si] = r_matched
     return r
 
 
