@@ -224,6 +224,28 @@ def test_the_fall_report_names_the_body_resting_on_the_terrain():
     assert text.startswith('fell at t = 0.99 s') and 'just after this row' in text
 
 
+def test_the_fall_report_dates_a_fall_from_the_tilt_it_ended_in():
+    """A walk that tilts beyond the report's 20 deg on steep rocks, comes back and falls
+    later (the runner's fall is 30 deg) is reported from the start of its last excursion,
+    with the earlier one named; without the bench's fell flag, from the first."""
+    tr = _one_swing_trace(0.5, 20.0)
+    n = len(tr['t'])
+    tr['feet'][:, :, :2] = [[0.1, 0.06], [0.1, -0.06], [-0.1, 0.06], [-0.1, -0.06]]
+    roll = np.zeros(n)
+    roll[10:30] = np.radians(22.0)           # 0.20 s beyond 20 deg, then back
+    roll[80:] = np.radians(25.0)             # the tilt it fell in
+    tr.update(base_rpy=np.stack([roll, np.zeros(n), np.zeros(n)], axis=1),
+              base_xyz=np.zeros((n, 3)), com=np.zeros((n, 3)),
+              phase=np.full(n, PHASES.index('shift')), steps_done=np.zeros(n, int),
+              force_estimate=tr['force'].copy(), believed_feet=tr['feet'].copy(),
+              other_force=np.zeros((n, 5)))
+    assert fall_report(tr).startswith('fell at t = 0.10 s')
+    tr['meta_fell'] = np.asarray(True)
+    text = fall_report(tr)
+    assert text.startswith('fell at t = 0.80 s')
+    assert 'beyond 20 deg before, first at t = 0.10 s, 0.2 s in all' in text
+
+
 @pytest.mark.timeout(240)
 def test_rocks_walks_in_worker_processes_end_as_in_one(tmp_path):
     """terrain-bench sim --workers: the same walks, traces and fall reports as one process
