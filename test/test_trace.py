@@ -227,7 +227,8 @@ def test_the_fall_report_names_the_body_resting_on_the_terrain():
 def test_the_fall_report_dates_a_fall_from_the_tilt_it_ended_in():
     """A walk that tilts beyond the report's 20 deg on steep rocks, comes back and falls
     later (the runner's fall is 30 deg) is reported from the start of its last excursion,
-    with the earlier one named; without the bench's fell flag, from the first."""
+    or from its last row if it fell after it without one, with the earlier one named;
+    without the bench's fell flag, from the first."""
     tr = _one_swing_trace(0.5, 20.0)
     n = len(tr['t'])
     tr['feet'][:, :, :2] = [[0.1, 0.06], [0.1, -0.06], [-0.1, 0.06], [-0.1, -0.06]]
@@ -244,6 +245,11 @@ def test_the_fall_report_dates_a_fall_from_the_tilt_it_ended_in():
     text = fall_report(tr)
     assert text.startswith('fell at t = 0.80 s')
     assert 'beyond 20 deg before, first at t = 0.10 s, 0.2 s in all' in text
+    # fallen after the last row (the runner's body test) with the tilt back under 20 deg
+    tr['base_rpy'][80:, 0] = 0.0
+    text = fall_report(tr)
+    assert text.startswith('fell at t = 0.99 s') and 'just after this row' in text
+    assert 'first at t = 0.10 s, 0.2 s in all' in text
 
 
 @pytest.mark.timeout(240)

@@ -184,27 +184,30 @@ def fall_report(trace: Union[dict, str, Path], window_s: float = 2.0,
     belly = other[:, 4] > LOADED_N if other is not None else np.zeros(len(t), bool)
     down = (tilt > tilt_deg) | belly
     over = np.flatnonzero(down)
-    earlier = ''
+    fell = bool(tr.get('meta_fell', False))
+    earlier, i_fall = '', None
     if len(over):
         i_fall = int(over[0])
-        if bool(tr.get('meta_fell', False)) and down[-1] and not down[i_fall:].all():
-            # The walk went on after that row (the runner's fall is a 30 deg tilt): a robot
-            # that walks tilted beyond tilt_deg on steep rocks and recovers has not fallen
-            # there; report the excursion it ended in (rocks-12cm ground truth seed 0: 20 deg
-            # at 48.4 s, fallen at 55.2 s).
+        if fell and not down[i_fall:].all():
+            # The walk went on after that row (the runner's fall is a 30 deg tilt or the body
+            # touching): a robot that walks tilted beyond tilt_deg on steep rocks and recovers
+            # has not fallen there; report the excursion it ended in, or its last row
+            # (rocks-12cm ground truth seed 0: 20 deg at 48.4 s, fallen at 55.2 s).
             first = i_fall
-            i_fall = int(np.flatnonzero(~down)[-1]) + 1
+            i_fall = int(np.flatnonzero(~down)[-1]) + 1 if down[-1] else None
             dt_row = float(np.median(np.diff(t)))
+            seen = down[:i_fall] if i_fall is not None else down
             earlier = (f'; beyond {tilt_deg:g} deg before, first at t = {t[first]:.2f} s, '
-                       f'{down[:i_fall].sum() * dt_row:.1f} s in all')
+                       f'{seen.sum() * dt_row:.1f} s in all')
+    if i_fall is not None:
         how = (f'tilt {tilt[i_fall]:.1f} deg' if tilt[i_fall] > tilt_deg else
                f'the body on the terrain with {other[i_fall, 4]:.1f} N, tilt '
                f'{tilt[i_fall]:.1f} deg') + earlier
-    elif bool(tr.get('meta_fell', False)):
+    elif fell:
         # the runner saw the body touch between the last sampled row and its stop
         i_fall = len(t) - 1
         how = (f'the body touched the terrain just after this row (the walk runner\'s test), '
-               f'tilt {tilt[i_fall]:.1f} deg')
+               f'tilt {tilt[i_fall]:.1f} deg') + earlier
     else:
         return None
     t_fall = float(t[i_fall])
