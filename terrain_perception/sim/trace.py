@@ -185,6 +185,7 @@ def fall_report(trace: Union[dict, str, Path], window_s: float = 2.0,
     down = (tilt > tilt_deg) | belly
     over = np.flatnonzero(down)
     fell = bool(tr.get('meta_fell', False))
+    dt = float(np.median(np.diff(t))) if len(t) > 1 else 0.0
     earlier, i_fall = '', None
     if len(over):
         i_fall = int(over[0])
@@ -195,10 +196,9 @@ def fall_report(trace: Union[dict, str, Path], window_s: float = 2.0,
             # (rocks-12cm ground truth seed 0: 20 deg at 48.4 s, fallen at 55.2 s).
             first = i_fall
             i_fall = int(np.flatnonzero(~down)[-1]) + 1 if down[-1] else None
-            dt_row = float(np.median(np.diff(t)))
             seen = down[:i_fall] if i_fall is not None else down
             earlier = (f'; beyond {tilt_deg:g} deg before, first at t = {t[first]:.2f} s, '
-                       f'{seen.sum() * dt_row:.1f} s in all')
+                       f'{seen.sum() * dt:.1f} s in all')
     if i_fall is not None:
         how = (f'tilt {tilt[i_fall]:.1f} deg' if tilt[i_fall] > tilt_deg else
                f'the body on the terrain with {other[i_fall, 4]:.1f} N, tilt '
@@ -232,7 +232,6 @@ def fall_report(trace: Union[dict, str, Path], window_s: float = 2.0,
                      f'{tilt[k]:.1f} deg, {t_fall - t[j]:.2f} s before the fall')
     else:
         lines.append(f'COM outside the loaded feet during the whole {window_s:.1f} s window')
-    dt = float(np.median(np.diff(t))) if len(t) > 1 else 0.0
     before = win[win <= inside[-1]] if len(inside) else win
     hang = hanging_runs(tr, before)
     lines.append('stance feet carrying nothing before the support was lost, longest run: ' + (
