@@ -120,13 +120,6 @@ class PlannerConfig:
         'midpoint to the front feet\'s, the body\'s yaw) off the plan\'s heading: 10 deg '
         'costs 0.03; at 5 the flat walk against a stance turned 3 deg a period drifted 4 cm '
         'sideways, at 1 under 1 cm [1/rad^2]', 0.0, 1e6)
-    stance_tilt_weight_per_rad2: float = param(
-        0.0, 'cost per square radian of the stance\'s tilt beyond stance_tilt_free_rad after '
-        'the step: the larger of the front-hind and left-right slopes of the four feet (what '
-        'the controller tilts the body by), so the beam avoids the steepest stances (0 = off) '
-        '[1/rad^2]', 0.0, 1e6)
-    stance_tilt_free_rad: float = param(
-        0.17, 'stance tilt that costs nothing (10 deg) [rad]', 0.0, 1.6)
     max_heading_error_rad: float = param(
         0.35, 'no foothold may turn the stance further than this off the plan\'s heading, '
         'unless it is already further and the step brings it back (0 = no limit) [rad]',
@@ -1227,8 +1220,6 @@ class FootstepPlanner:
         # round a rock turns it 8 deg, and such steps added up to 60 deg on rocks-12cm (seed 0)
         # while each plan turned back by max_turn_rad only.
         err = self._heading_error(state.feet, leg, u, v)
-        tilt = (self._stance_tilt(state.feet, leg, u, v, pts[:, 2])
-                if cfg.stance_tilt_weight_per_rad2 > 0 else np.zeros(len(u)))
         if cfg.max_heading_error_rad > 0:
             err0 = abs(float(self._heading_error(state.feet, leg, *self._uv(
                 state.feet[leg:leg + 1]))[0]))
@@ -1236,8 +1227,7 @@ class FootstepPlanner:
             if not np.any(keep):
                 return None, (f'no foothold keeps the stance within '
                               f'{np.degrees(cfg.max_heading_error_rad):.0f} deg of the heading')
-            pts, u, v, ij, err, tilt = (pts[keep], u[keep], v[keep], ij[keep], err[keep],
-                                        tilt[keep])
+            pts, u, v, ij, err = pts[keep], u[keep], v[keep], ij[keep], err[keep]
         cost = self.cost[ij[:, 0], ij[:, 1]]
         omega = (cfg.distance_weight_gain * ((u - centre) ** 2 + (v - self.nom_v[leg]) ** 2)
                  + A) / max(A, 1e-9)
@@ -1247,9 +1237,7 @@ class FootstepPlanner:
         short = np.maximum(centre - u, 0.0)
         J = omega * (np.maximum(cost, 0.0) + cfg.cost_offset + cfg.step_height_weight_per_m * dz
                      + cfg.nominal_weight_per_m2 * d2 + cfg.shortfall_weight_per_m2 * short ** 2
-                     + cfg.heading_weight_per_rad2 * err ** 2
-                     + cfg.stance_tilt_weight_per_rad2
-                     * np.maximum(tilt - cfg.stance_tilt_free_rad, 0.0) ** 2)
+                     + cfg.heading_weight_per_rad2 * err ** 2)
         pidx = np.full(len(pts), -1)
         if self.patches is not None and cfg.patch_bonus > 0:
             pv, pr = self.patches
@@ -1277,23 +1265,6 @@ class FootstepPlanner:
         du = FU[:, [LF, RF]].mean(axis=1) - FU[:, [LH, RH]].mean(axis=1)
         dv = FV[:, [LF, RF]].mean(axis=1) - FV[:, [LH, RH]].mean(axis=1)
         return np.arctan2(dv, du)
-
-    def _stance_tilt(self, feet: np.ndarray, leg: int, u: np.ndarray, v: np.ndarray,
-                     z: np.ndarray) -> np.ndarray:
-        """Tilt [rad] of the stance ``feet`` with ``leg`` moved to each ``(u, v, z)``: the
-        larger of its front-hind and left-right slopes (the plane the controller tilts the
-        body towards, :func:`terrain_perception.gait.body_tilt_from_feet`)."""
-        fu, fv = self._uv(feet)
-        n = len(u)
-        FU, FV = np.repeat(fu[None], n, axis=0), np.repeat(fv[None], n, axis=0)
-        FZ = np.repeat(np.asarray(feet, dtype=float)[None, :, 2], n, axis=0)
-        FU[:, leg], FV[:, leg], FZ[:, leg] = u, v, z
-        front, hind, left, right = [LF, RF], [LH, RH], [LF, LH], [RF, RH]
-        du = np.maximum(FU[:, front].mean(axis=1) - FU[:, hind].mean(axis=1), 1e-3)
-        dv = np.maximum(FV[:, left].mean(axis=1) - FV[:, right].mean(axis=1), 1e-3)
-        pitch = np.arctan2(np.abs(FZ[:, front].mean(axis=1) - FZ[:, hind].mean(axis=1)), du)
-        roll = np.arctan2(np.abs(FZ[:, left].mean(axis=1) - FZ[:, right].mean(axis=1)), dv)
-        return np.maximum(pitch, roll)
 
     def _swing_pose(self, feet: np.ndarray, leg: int, yaw: float, A: float,
                     remaining: float):
