@@ -128,10 +128,16 @@ class GridMap:
         return xs, ys
 
     def world_to_index(self, xy: np.ndarray) -> np.ndarray:
-        """Integer cell indices ``(..., 2)`` of world points ``(..., 2)`` [m]; may be outside."""
+        """Integer cell indices ``(..., 2)`` of world points ``(..., 2)`` [m]; may be outside.
+        A NaN or infinite coordinate gives an index outside the grid (-1): casting it to an
+        integer directly is undefined (it warns, and the value depends on the CPU)."""
         xy = np.asarray(xy, dtype=np.float64)
         org = np.asarray(self.origin_xy)
-        return np.floor((xy - org) / self.resolution_m).astype(np.int64)
+        f = np.floor((xy - org) / self.resolution_m)
+        big = ~(np.abs(f) < 2.0 ** 62)
+        if np.any(big):
+            f = np.where(np.isfinite(f), np.clip(f, -2.0 ** 62, 2.0 ** 62), -1.0)
+        return f.astype(np.int64)
 
     def index_to_world(self, ij: np.ndarray) -> np.ndarray:
         """World centres ``(..., 2)`` [m] of cell indices ``(..., 2)``."""
