@@ -6,12 +6,16 @@ not changed). A speed-up must give the same output as its entry here: bitwise wh
 same arithmetic.
 """
 
+from typing import Dict
+
 import numpy as np
 from scipy import ndimage
 
 from terrain_perception import gait as gaitlib
 from terrain_perception import kinematics
 from terrain_perception.body_path import belly_samples
+from terrain_perception.features import (CostConfig, _check_heights, _sep, _window_kernels,
+                                         window_cells)
 from terrain_perception.gait import _deepest_point, convex_order, support_margin
 from terrain_perception.ground_plane import (GroundPlaneConfig, _lsq_plane, _three_distinct,
                                              plane_from_normal)
@@ -245,3 +249,66 @@ def project_into_support(point_xy: np.ndarray, support_xy: np.ndarray,
     cand = a + t[:, None] * ab
     best = cand[np.argmin(np.linalg.norm(cand - p, axis=1))]
     return best, float(support_margin(best, poly))
+
+
+# --- terrain features ------------------------------------------------------------------------
+def kolter_features(heights: np.ndarray, resolution_m: float,
+                    config: CostConfig = CostConfig()) -> Dict[str, np.ndarray]:
+    """terrain_perception.features.kolter_features before the plane was fitted only under the
+    cells of known height (commit 633dc8f)."""
+    h = _check_heights(heights)
+    kf = window_cells(config.foot_window_m, resolution_m)
+    kl = window_cells(config.leg_window_m, resolution_m)
+    known = np.isfinite(h)
+    m = known.astype(np.float64)
+    hz = np.where(known, h, 0.0)
+    # Heights relative to the map's mean keep the moment sums well conditioned.
+    ref = float(hz.sum() / max(m.sum(), 1.0))
+    hz = np.where(known, h - ref, 0.0)
+
+    one, ramp, quad = _window_kernels(kf)
+    s0 = _sep(m, one, one)
+    su = _sep(m, ramp, one)
+    sv = _sep(m, one, ramp)
+    suu = _sep(m, quad, one)
+    svv = _sep(m, one, quad)
+    suv = _sep(m, ramp, ramp)
+    sh = _sep(hz, one, one)
+    shu = _sep(hz, ramp, one)
+    shv = _sep(hz, one, ramp)
+    shh = _sep(hz * hz, one, one)
+
+    # Weighted least-squares plane a + b*u + c*v over the known cells of each window.
+    mat = np.stack([np.stack([s0, su, sv], -1), np.stack([su, suu, suv], -1),
+                    np.stack([sv, suv, svv], -1)], -2)
+    rhs = np.stack([sh, shu, shv], -1)
+    det = np.linalg.det(mat)
+    solvable = (s0 >= 3) & (np.abs(det) > 1e-9 * np.maximum(s0, 1.0) ** 3)
+    grad = np.zeros(h.shape + (2,))
+    if solvable.any():
+        sol = np.linalg.solve(mat[solvable], rhs[solvable][..., None])[..., 0]
+        grad[solvable] = sol[:, 1:]
+    # A window with too few known cells to fix a plane has no measurable slope: 0, not NaN, so
+    # the other features still rank the cell.
+    slope = np.hypot(grad[..., 0], grad[..., 1]) / resolution_m
+
+    n = np.maximum(s0, 1.0)
+    mean = sh / n
+    roughness = np.sqrt(np.maximum(shh / n - mean * mean, 0.0))
+
+    hmax = ndimage.maximum_filter(np.where(known, h, -np.inf), size=kl, mode='constant',
+                                  cval=-np.inf)
+    height_diff = np.maximum(hmax - h, 0.0)
+
+    known_fraction = s0 / float(kf * kf)
+    feats = {'slope': slope, 'roughness': roughness, 'height_differential': height_diff,
+             'known_fraction': known_fraction}
+    invalid = ~known
+    if config.nan_policy == 'propagate':
+        full_f = _sep(m, one, one) >= kf * kf - 0.5
+        onel = np.ones(kl)
+        full_l = _sep(m, onel, onel) >= kl * kl - 0.5
+        invalid = invalid | ~full_f | ~full_l
+    for name in ('slope', 'roughness', 'height_differential'):
+        feats[name] = np.where(invalid, np.nan, feats[name])
+    return feats

@@ -378,3 +378,32 @@ def test_check_footsteps_equals_the_previous_code(dry_run_cases):
         assert a[:2] == b[:2]
         for x, y in zip(a[2:], b[2:]):
             np.testing.assert_array_equal(x, y)
+
+
+# --- terrain features ------------------------------------------------------------------------
+def test_kolter_features_equal_the_previous_code(walk):
+    """The plane fitted only under cells of known height: every feature bitwise as before on
+    the fill walk's moving maps (mostly unknown) as observed and as filled, with either NaN
+    policy and window, plus maps with nothing or almost nothing known and a flat one (singular
+    planes)."""
+    from terrain_perception.features import CostConfig, kolter_features
+    filled = run_filler(walk[:6])
+    maps = [np.asarray(g[ELEVATION], np.float64) for g, _, _ in walk[::3]]
+    maps += [o[0][ELEVATION] for o in filled]
+    assert all(0.05 < np.isfinite(h).mean() < 0.9 for h in maps)
+    rng = np.random.default_rng(8)
+    sparse = np.full((60, 50), np.nan)
+    sparse[rng.random(sparse.shape) < 0.05] = 0.01
+    flat = np.zeros((40, 40))
+    flat[:, 5] = np.nan
+    line = np.full((30, 30), np.nan)
+    line[10, :] = np.linspace(0.0, 0.1, 30)                   # collinear: no plane
+    maps += [sparse, flat, line, np.full((20, 20), np.nan)]
+    for cfg in (CostConfig(), CostConfig(nan_policy='propagate'),
+                CostConfig(foot_window_m=0.09, nan_policy='ignore')):
+        for h in maps:
+            a = kolter_features(h, 0.01, cfg)
+            b = ref.kolter_features(h, 0.01, cfg)
+            assert a.keys() == b.keys()
+            for name in a:
+                assert a[name].tobytes() == b[name].tobytes(), name
