@@ -33,6 +33,7 @@ the planner cannot use yields a plan with an explanatory status and no footsteps
 
 from __future__ import annotations
 
+import array
 from dataclasses import dataclass
 from typing import Optional
 
@@ -150,7 +151,7 @@ def cost_to_occupancy(grid: GridMap, cost: np.ndarray, cost_max: float, stamp) -
     with np.errstate(invalid='ignore'):
         val = np.clip(np.rint(np.asarray(cost, np.float64) / cost_max * 100.0), 0, 100)
     val = np.where(np.isfinite(cost), val, -1).astype(np.int8)
-    msg.data = val.T.ravel().tolist()
+    msg.data = array.array('b', val.T.tobytes())     # int8 as is: no per-element checks
     return msg
 
 

@@ -35,6 +35,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Callable, NamedTuple, Optional
 
+import functools
+
 import numpy as np
 from scipy.interpolate import CubicSpline
 
@@ -353,6 +355,9 @@ class WalkingController:
         self._reanchor_checked = None   # stance last checked by _reanchor_feet
         self._R_tilt: Optional[np.ndarray] = None   # measured base tilt (yaw removed)
         self._dry = False          # check_footsteps: segments without joint splines
+        # check_footsteps only (map and frames fixed for the controller's life): results of
+        # _belly_z, _body_z and the current stance's shank depth by their exact inputs
+        self._memo: Optional[dict] = None
         self.last_ik_reasons: tuple = ()
 
     # -- inputs ---------------------------------------------------------------------------
@@ -1007,8 +1012,8 @@ class WalkingController:
                                         self._apex(self._feet[leg], targets[k]), 1.0, leg,
                                         fore_aft=fore_aft)
             poses[:, leg] = sw.position(taus * sw.total_s)
-        nominal_off = transform_points(gaitlib.pose_to_T(goal), kinematics.com_base(
-            m, kinematics.standing_joint_angles(m))[None])[0, :2] - goal[:2]
+        nominal_off = transform_points(gaitlib.pose_to_T(goal),
+                                       _standing_com(m)[None])[0, :2] - goal[:2]
         mean, extra = nominal_off, 0.0
         for _ in range(3):
             body[2] = self._body_z(goal[2], body, poses, legs)
@@ -1189,8 +1194,16 @@ class WalkingController:
         if tol < 0.0 or self.height is None or self._q_last is None:
             return True
         depth = self._shank_depth(T, q)
-        now = self._shank_depth(gaitlib.pose_to_T(self._body),
-                                np.asarray(self._q_last, dtype=float).reshape(4, 3))
+        key = None
+        if self._memo is not None:
+            key = ('shank', np.asarray(self._body, dtype=float).tobytes(),
+                   np.asarray(self._q_last, dtype=float).tobytes())
+            now = self._memo.get(key)
+        if key is None or now is None:
+            now = self._shank_depth(gaitlib.pose_to_T(self._body),
+                                    np.asarray(self._q_last, dtype=float).reshape(4, 3))
+            if key is not None:
+                self._memo[key] = now
         bad = depth > np.maximum(tol, now + 0.002)
         if not bad.any():
             return True
@@ -1205,6 +1218,21 @@ class WalkingController:
         map (:meth:`_belly_z`), and lowered so every foot stays in reach; if
         that is still not reachable everywhere (e.g. the abduction limit with a foot far out),
         the nearest height in +-4 cm at which every pose is reachable."""
+        key = None
+        if self._memo is not None:        # body[2] is not used
+            b = np.asarray(body, dtype=float)
+            key = ('body_z', np.float64(z_nominal).tobytes(), b[:2].tobytes(), b[3:].tobytes(),
+                   np.asarray(poses, dtype=float).tobytes(), np.shape(poses), tuple(legs))
+            z = self._memo.get(key)
+            if z is not None:
+                return z
+        z = self._body_z_uncached(z_nominal, body, poses, legs)
+        if key is not None:
+            self._memo[key] = z
+        return z
+
+    def _body_z_uncached(self, z_nominal: float, body: np.ndarray, poses: np.ndarray,
+                         legs) -> float:
         m = self.model
         z_min = float(poses[:, legs, 2].max()) + m.foot_radius_m + \
             self.config.min_swing_hip_height * m.standing_height_m if len(legs) else -np.inf
@@ -1215,6 +1243,9 @@ class WalkingController:
         centres[..., 2] += m.foot_radius_m
         base = np.array([body[0], body[1], 0.0])
         local = (centres[None] - base - cands[:, None, None, None] * np.array([0, 0, 1.0])) @ R
+        # The IK is per foot: the first height alone first (usually it reaches every pose).
+        if kinematics.solve_ik(m, local[0], explain=False).all_ok:
+            return float(cands[0])
         ok = kinematics.solve_ik(m, local, explain=False).ok.all(axis=(1, 2))
         return float(cands[int(np.argmax(ok))]) if ok.any() else z
 
@@ -1225,14 +1256,23 @@ class WalkingController:
         c = self.config
         if c.belly_clearance_m < 0.0 or self.height is None:
             return -np.inf
+        key = None
+        if self._memo is not None:
+            key = ('belly_z', np.asarray(body, dtype=float)[[0, 1, 3]].tobytes())
+            z = self._memo.get(key)
+            if z is not None:
+                return z
         thick = float(self.model.body_size_m[2])
-        U, V = belly_samples(self.model)[0][:, :2].T
+        U, V = _belly_uv(self.model)
         cy, sy = np.cos(body[3]), np.sin(body[3])
         pts = np.stack([body[0] + cy * U - sy * V, body[1] + sy * U + cy * V,
                         np.zeros_like(U)], axis=-1)
         in_map = transform_points(self.T_map_odom, pts)
         ground = gaitlib.terrain_height(self.height, in_map[:, :2]) - in_map[:, 2]  # in odom
-        return float(ground.max()) + 0.5 * thick + c.belly_clearance_m
+        z = float(ground.max()) + 0.5 * thick + c.belly_clearance_m
+        if key is not None:
+            self._memo[key] = z
+        return z
 
     def _max_body_z(self, body: np.ndarray, feet_poses: np.ndarray) -> float:
         """Highest level-body z keeping every foot of ``feet_poses`` ``(n, 4, 3)`` within
@@ -1408,6 +1448,19 @@ class WalkingController:
         The traverse is level in odom; when ``T_map_odom`` has roll or pitch the map height of
         a level odom line varies linearly along it, so the apex is the higher of the odom
         heights of the map apex above the two ends (both then clear it)."""
+        key = None
+        if self._memo is not None:
+            key = ('apex', np.asarray(p0, dtype=float).tobytes(),
+                   np.asarray(p1, dtype=float).tobytes())
+            z = self._memo.get(key)
+            if z is not None:
+                return z
+        z = self._apex_uncached(p0, p1)
+        if key is not None:
+            self._memo[key] = z
+        return z
+
+    def _apex_uncached(self, p0: np.ndarray, p1: np.ndarray) -> float:
         T = self.T_map_odom
         a, b = transform_points(T, p0[None])[0], transform_points(T, p1[None])[0]
         apex_map = gaitlib.swing_apex(a, b, self.height, self.clearance_m,
@@ -1478,6 +1531,7 @@ def check_footsteps(model: RobotModel, config: WalkingConfig, feet: np.ndarray,
     positions = np.asarray(positions, dtype=float).reshape(-1, 3)
     ctl = WalkingController(model, config, height=height)
     ctl._dry = True
+    ctl._memo = {}
     body = ctl._goal_pose(feet)
     if T_body is not None:
         T_body = np.asarray(T_body, dtype=float)
@@ -1509,6 +1563,22 @@ def check_footsteps(model: RobotModel, config: WalkingConfig, feet: np.ndarray,
         ctl._finish_segment()
         done += len(step.legs)
     return done, ''
+
+
+@functools.lru_cache(maxsize=8)
+def _belly_uv(model: RobotModel) -> tuple:
+    """The x and y columns of :func:`belly_samples` of ``model`` (read only), built once."""
+    U, V = belly_samples(model)[0][:, :2].T
+    U.flags.writeable = V.flags.writeable = False
+    return U, V
+
+
+@functools.lru_cache(maxsize=8)
+def _standing_com(model: RobotModel) -> np.ndarray:
+    """``kinematics.com_base`` of the standing joint angles of ``model`` (read only)."""
+    com = kinematics.com_base(model, kinematics.standing_joint_angles(model))
+    com.flags.writeable = False
+    return com
 
 
 def _shank_angles(q: np.ndarray) -> np.ndarray:

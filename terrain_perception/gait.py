@@ -81,8 +81,9 @@ def project_into_support(point_xy: np.ndarray, support_xy: np.ndarray,
         ab = b - a
         t = np.clip((p - a) @ ab / max(ab @ ab, 1e-12), 0.0, 1.0)
         return a + t * ab, 0.0
-    if support_margin(p, poly) >= margin_m:
-        return p, float(support_margin(p, poly))
+    inner = support_margin(p, poly)
+    if inner >= margin_m:
+        return p, float(inner)
     e = np.roll(poly, -1, axis=0) - poly
     n = np.stack([-e[:, 1], e[:, 0]], axis=-1) / np.linalg.norm(e, axis=-1, keepdims=True)
     off = np.einsum('kj,kj->k', poly, n) + margin_m      # half-planes n.x >= off

@@ -282,3 +282,128 @@ def test_feasible_argmin_kernel_on_exact_ties_nan_and_inf():
             k0, any0 = numpy_feasible_argmin(C, Abar, b, s)
         np.testing.assert_array_equal(any_ok, any0)
         np.testing.assert_array_equal(k, k0)
+
+
+# --- the planner's dry run of the walking controller (check_footsteps) -----------------------
+def _rock_grid(seed, n=150, res=0.01):
+    """A seeded field of flat-topped and conical rocks up to 5 cm, as test_footsteps'."""
+    from terrain_perception.grid import GridMap
+    rng = np.random.default_rng(seed)
+    X, Y = np.mgrid[0:n, 0:n]
+    h = np.zeros((n, n))
+    for _ in range(70):
+        cx, cy = rng.integers(0, n, 2)
+        r = rng.integers(3, 12)
+        d = np.hypot(X - cx, Y - cy)
+        top = rng.uniform(0.01, 0.05)
+        h = np.maximum(h, np.where(d < r, top, 0.0) if rng.random() < 0.5
+                       else np.clip(top * (1 - d / r), 0, None))
+    h[rng.random(h.shape) < 0.01] = np.nan                 # unknown cells
+    return GridMap(res, (-0.75, -0.75), h.shape, {ELEVATION: h.astype(np.float32)})
+
+
+@pytest.fixture(scope='module')
+def dry_run_cases():
+    """``(grid, feet, legs, positions, T_body)``: the crawl plans the planner makes on three
+    rock fields from several poses, and jittered copies of them (refused at every stage: reach,
+    margin, belly, shanks)."""
+    from terrain_perception import footsteps as fs
+    from terrain_perception.features import cost_map
+    rm = load_robot_model('littledog')
+    rng = np.random.default_rng(11)
+    cases = []
+    for seed in (0, 1, 2):
+        g = _rock_grid(seed)
+        g['cost'] = cost_map(np.asarray(g[ELEVATION], np.float64), g.resolution_m)
+        planner = fs.FootstepPlanner(rm, fs.PlannerConfig(horizon_steps=8))
+        assert planner.set_map(g) is None
+        for x0, yaw in ((-0.2, 0.0), (0.0, 0.3), (0.1, -0.4), (-0.3, 0.1)):
+            T = np.eye(4)
+            T[:2, :2] = [[np.cos(yaw), -np.sin(yaw)], [np.sin(yaw), np.cos(yaw)]]
+            T[:3, 3] = [x0, 0.0, rm.standing_height_m]
+            plan = planner.plan(T)
+            if not plan.ok or not plan.footsteps:
+                continue
+            legs = np.array([s.leg for s in plan.footsteps])
+            pos = np.array([s.position for s in plan.footsteps])
+            feet = plan.initial_feet.copy()
+            T_body = T.copy()
+            T_body[2, 3] = feet[:, 2].mean() + rm.standing_height_m + rng.normal(0, 0.01)
+            cases.append((g, feet, legs, pos, T_body))
+            for _ in range(4):
+                jit = pos + rng.normal(0.0, [0.03, 0.03, 0.015], pos.shape)
+                cases.append((g, feet, legs, jit, T_body if rng.random() < 0.7 else None))
+    return cases
+
+
+def run_dry(cases, monkeypatch=None):
+    """check_footsteps over ``cases``: its answers and the state after every segment."""
+    from terrain_perception.controller import WalkingConfig, WalkingController, check_footsteps
+    rm = load_robot_model('littledog')
+    log = []
+    finish = WalkingController._finish_segment
+
+    def record(self, *a, **kw):
+        seg = self._seg
+        log.append((seg.kind, seg.duration, seg.q_end, seg.roll, seg.body_end, seg.feet_end))
+        return finish(self, *a, **kw)
+    out = []
+    with pytest.MonkeyPatch.context() as m:
+        m.setattr(WalkingController, '_finish_segment', record)
+        for cfg in (WalkingConfig(), WalkingConfig(belly_clearance_m=0.03)):
+            for g, feet, legs, pos, T_body in cases:
+                out.append(check_footsteps(rm, cfg, feet, legs, pos, 'walk', g, T_body=T_body))
+    return out, log
+
+
+def test_check_footsteps_equals_the_previous_code(dry_run_cases):
+    """The controller's dry run with its memo, cached belly samples and standing COM, the
+    first swing height's IK on its own and project_into_support's single margin: the same
+    answers and every segment's end state bitwise as the code before (633dc8f)."""
+    from terrain_perception import controller as ctlmod
+    from terrain_perception import gait as gaitmod
+    new, new_log = run_dry(dry_run_cases)
+    with pytest.MonkeyPatch.context() as m:
+        for name in ('_shift_body', '_shanks_clear', '_body_z', '_belly_z', '_apex'):
+            m.setattr(ctlmod.WalkingController, name, getattr(ref, 'ctl' + name))
+        m.setattr(gaitmod, 'project_into_support', ref.project_into_support)
+        old, old_log = run_dry(dry_run_cases)
+    why = [w for _, w in old]
+    assert len(old) >= 60 and why.count('') >= 10 and len(why) - why.count('') >= 10, why
+    kinds = ('shank', 'margin', 'reach')
+    assert all(any(k in w for w in why) for k in kinds), why     # refused for each reason
+    assert new == old
+    assert len(new_log) == len(old_log) > 200
+    for a, b in zip(new_log, old_log):
+        assert a[:2] == b[:2]
+        for x, y in zip(a[2:], b[2:]):
+            np.testing.assert_array_equal(x, y)
+
+
+# --- terrain features ------------------------------------------------------------------------
+def test_kolter_features_equal_the_previous_code(walk):
+    """The plane fitted only under cells of known height: every feature bitwise as before on
+    the fill walk's moving maps (mostly unknown) as observed and as filled, with either NaN
+    policy and window, plus maps with nothing or almost nothing known and a flat one (singular
+    planes)."""
+    from terrain_perception.features import CostConfig, kolter_features
+    filled = run_filler(walk[:6])
+    maps = [np.asarray(g[ELEVATION], np.float64) for g, _, _ in walk[::3]]
+    maps += [o[0][ELEVATION] for o in filled]
+    assert all(0.05 < np.isfinite(h).mean() < 0.9 for h in maps)
+    rng = np.random.default_rng(8)
+    sparse = np.full((60, 50), np.nan)
+    sparse[rng.random(sparse.shape) < 0.05] = 0.01
+    flat = np.zeros((40, 40))
+    flat[:, 5] = np.nan
+    line = np.full((30, 30), np.nan)
+    line[10, :] = np.linspace(0.0, 0.1, 30)                   # collinear: no plane
+    maps += [sparse, flat, line, np.full((20, 20), np.nan)]
+    for cfg in (CostConfig(), CostConfig(nan_policy='propagate'),
+                CostConfig(foot_window_m=0.09, nan_policy='ignore')):
+        for h in maps:
+            a = kolter_features(h, 0.01, cfg)
+            b = ref.kolter_features(h, 0.01, cfg)
+            assert a.keys() == b.keys()
+            for name in a:
+                assert a[name].tobytes() == b[name].tobytes(), name
