@@ -8,13 +8,17 @@
 * ``RMW_IMPLEMENTATION=rmw_fastrtps_cpp`` unless set (the only RMW the venv installs).
 
 :func:`node_env` adds, for the node processes a launcher starts, one worker thread per
-OpenMP/BLAS pool (``OMP_NUM_THREADS``, ``OPENBLAS_NUM_THREADS``, ``MKL_NUM_THREADS`` = 1 unless
-set): the graph is already parallel across processes, and a pool's spinning workers take the
-cores from the other nodes and the simulator. ``terrain-bench pipeline`` measures it on a
-recorded run: with one thread per pool the ICP mapper's update took 1.81x less CPU and a
-capture's whole pipeline 1.28x less on a quiet machine (1.15x and 1.05x with the closed-loop
-benchmark running beside it; docs/BENCHMARKS.md). Export a larger value to give a node
-more threads on a bigger computer.
+OpenMP/BLAS/OpenCV pool (``OMP_NUM_THREADS``, ``OPENBLAS_NUM_THREADS``, ``MKL_NUM_THREADS``,
+``OPENCV_FOR_THREADS_NUM`` = 1 unless set): the graph is already parallel across processes, and
+a pool's spinning workers take the cores from the other nodes and the simulator. ``terrain-bench
+pipeline`` measures it on a recorded run: with one thread per OpenMP/BLAS pool the ICP mapper's
+update took 1.81x less CPU and a capture's whole pipeline 1.28x less on a quiet machine (1.15x
+and 1.05x with the closed-loop benchmark running beside it; docs/BENCHMARKS.md). OpenCV's pool
+(StereoBM, the patches' bilateral filter) splits a call over both cores, so in the loop a half
+waits whenever the simulator holds the other core: with one thread the stereo node's run-queue
+wait fell from 33.8 to 10.8 s over a rocks-6cm trial (seed 147, 17.1 -> 13.9 s of CPU) and its
+stage from 53.2 to 47.0 ms (docs/CLOSED_LOOP.md, thirty-ninth session). Export a larger value
+to give a node more threads on a bigger computer.
 """
 
 from __future__ import annotations
@@ -44,7 +48,7 @@ def safe_env(env: Optional[MutableMapping[str, str]] = None) -> MutableMapping[s
 
 #: Thread-pool sizes :func:`node_env` sets unless the user did.
 NODE_THREAD_DEFAULTS = {'OMP_NUM_THREADS': '1', 'OPENBLAS_NUM_THREADS': '1',
-                        'MKL_NUM_THREADS': '1'}
+                        'MKL_NUM_THREADS': '1', 'OPENCV_FOR_THREADS_NUM': '1'}
 
 
 def node_env(env: Optional[MutableMapping[str, str]] = None) -> MutableMapping[str, str]:

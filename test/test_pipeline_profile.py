@@ -197,6 +197,7 @@ def test_every_stage_runs_once_per_capture_on_a_synthetic_bag(synthetic_bag, tmp
     out = tmp_path / 'profile.json'
     env = dict(os.environ, OMP_NUM_THREADS='1', MKL_NUM_THREADS='3')
     env.pop('OPENBLAS_NUM_THREADS', None)
+    env['OPENCV_FOR_THREADS_NUM'] = '2'
     res = _tool(synthetic_bag, '--json', out, '--profile', 'icp', env=env)
     assert res.returncode == 0, res.stdout + res.stderr[-3000:]
     r = json.loads(out.read_text())
@@ -223,8 +224,9 @@ def test_every_stage_runs_once_per_capture_on_a_synthetic_bag(synthetic_bag, tmp
     assert r['sink_matched'] is True
     # thread variables: reported as given, not changed
     assert r['threads'] == {'OMP_NUM_THREADS': '1', 'OPENBLAS_NUM_THREADS': None,
-                            'MKL_NUM_THREADS': '3'}
-    assert 'OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=unset MKL_NUM_THREADS=3' in res.stdout
+                            'MKL_NUM_THREADS': '3', 'OPENCV_FOR_THREADS_NUM': '2'}
+    assert ('OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=unset MKL_NUM_THREADS=3 '
+            'OPENCV_FOR_THREADS_NUM=2') in res.stdout
     # the table and the profile of the asked stage
     for stage in pp.STAGES:
         assert f'\n{stage} ' in res.stdout

@@ -157,14 +157,17 @@ def test_bad_launch_files_give_one_error_line(tmp_path):
 def test_launched_nodes_get_one_thread_per_pool_unless_the_user_set_it(tmp_path, monkeypatch):
     from terrain_ros.tools.launch import load_launch_file
     launch = _write_launch(tmp_path)
-    for k in ('OMP_NUM_THREADS', 'OPENBLAS_NUM_THREADS', 'MKL_NUM_THREADS'):
+    for k in ('OMP_NUM_THREADS', 'OPENBLAS_NUM_THREADS', 'MKL_NUM_THREADS',
+              'OPENCV_FOR_THREADS_NUM'):
         monkeypatch.delenv(k, raising=False)
     monkeypatch.setenv('OPENBLAS_NUM_THREADS', '4')
     specs = load_launch_file(launch, {})
     assert len(specs) == 2
     for s in specs:
-        # OpenMP (Open3D's ICP) and MKL pools: one worker; the user's BLAS choice is kept.
+        # OpenMP (Open3D's ICP), MKL and OpenCV pools: one worker; the user's BLAS choice is
+        # kept.
         assert s.env['OMP_NUM_THREADS'] == '1' and s.env['MKL_NUM_THREADS'] == '1'
+        assert s.env['OPENCV_FOR_THREADS_NUM'] == '1'
         assert s.env['OPENBLAS_NUM_THREADS'] == '4'
         assert s.env['ROS_AUTOMATIC_DISCOVERY_RANGE'] in ('LOCALHOST', os.environ.get(
             'ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST'))

@@ -6,10 +6,10 @@ footstep planner in one process, the bag's recorded inputs replayed into their c
 per callback from ``time.process_time()``; see that module) twice, in subprocesses, on the same
 bag and captures:
 
-* ``default_pools`` (the baseline): ``OMP_NUM_THREADS``, ``OPENBLAS_NUM_THREADS`` and
-  ``MKL_NUM_THREADS`` removed from the environment, i.e. every library's default pool (one
-  worker per core);
-* ``node_env``: the three = 1, what ``terrain-launch`` gives node processes
+* ``default_pools`` (the baseline): ``OMP_NUM_THREADS``, ``OPENBLAS_NUM_THREADS``,
+  ``MKL_NUM_THREADS`` and ``OPENCV_FOR_THREADS_NUM`` removed from the environment, i.e. every
+  library's default pool (one worker per core);
+* ``node_env``: the four = 1, what ``terrain-launch`` gives node processes
   (``terrain_ros.env.node_env``);
 * ``numpy_ik``: the node env with ``TERRAIN_IK_NUMBA=0``, the numpy leg IK instead of the
   compiled kernel (the baseline of ``_ik_kernel``: the planner's dry run of the controller's
@@ -48,12 +48,15 @@ from typing import Dict, Optional
 
 # The pools terrain_ros.env.node_env sets to one thread (NODE_THREAD_DEFAULTS; the core may not
 # import terrain_ros, test_pipeline_profile checks that the two lists agree).
-THREAD_VARS = ('OMP_NUM_THREADS', 'OPENBLAS_NUM_THREADS', 'MKL_NUM_THREADS')
+THREAD_VARS = ('OMP_NUM_THREADS', 'OPENBLAS_NUM_THREADS', 'MKL_NUM_THREADS',
+               'OPENCV_FOR_THREADS_NUM')
 VARIANTS = ('default_pools', 'node_env', 'numpy_ik')
 REPO = Path(__file__).resolve().parents[2]
 VARIANT_TITLES = {'default_pools': 'baseline: the libraries\' default thread pools '
-                                   '(OMP/OPENBLAS/MKL_NUM_THREADS unset)',
-                  'node_env': 'node env: OMP/OPENBLAS/MKL_NUM_THREADS=1 (terrain-launch)',
+                                   '(OMP/OPENBLAS/MKL_NUM_THREADS, OPENCV_FOR_THREADS_NUM '
+                                   'unset)',
+                  'node_env': 'node env: OMP/OPENBLAS/MKL_NUM_THREADS=1, '
+                              'OPENCV_FOR_THREADS_NUM=1 (terrain-launch)',
                   'numpy_ik': 'node env with the numpy leg IK (TERRAIN_IK_NUMBA=0)'}
 STAGES = ('stereo', 'icp', 'fill', 'plan_map', 'patches', 'plan_goal')
 DEMO_RUN_DIR = Path('runs') / 'bench' / 'pipeline-demo'

@@ -64,8 +64,8 @@ matches the bag's right ``camera_info`` (both profiles use the same joint names,
 else littledog. ``--library-height`` defaults to what ``terrain-demo`` uses for the run's course
 (``summary.json``; 0.06 m for rocks-6cm or when unknown).
 
-Thread pools: the tool does not touch ``OMP_NUM_THREADS``, ``OPENBLAS_NUM_THREADS`` or
-``MKL_NUM_THREADS``; it runs with the environment it was given and prints (and writes to the
+Thread pools: the tool does not touch ``OMP_NUM_THREADS``, ``OPENBLAS_NUM_THREADS``,
+``MKL_NUM_THREADS`` or ``OPENCV_FOR_THREADS_NUM``; it runs with the environment it was given and prints (and writes to the
 JSON) their values. ``terrain-launch`` sets them to 1 for node processes
 (``terrain_ros.env.node_env``); to profile as the nodes run, set them the same way. ``terrain-bench
 pipeline`` runs both settings.
