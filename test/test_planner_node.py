@@ -2,6 +2,8 @@
 the core planner); cloud + IMU -> contact patches on the true ground; every bad input gives an
 explanatory empty plan and the node keeps running."""
 
+import dataclasses
+
 import numpy as np
 import pytest
 from geometry_msgs.msg import Point, PoseStamped
@@ -191,10 +193,10 @@ def test_the_body_path_round_a_tall_rock_is_published(ros_context, executor):
                                 for p in paths[-1].poses], [[0.0, 0.0], [0.7, 0.0]], atol=1e-9)
 
 
-def _stance_scene(ros_context, executor):
+def _stance_scene(ros_context, executor, **params):
     """A planner node at the pose with an obstacle ahead (walk gait), a publisher of the
     controller's stance and the nominal feet there: ``(harness, heights, publisher, feet)``."""
-    h = Harness(ros_context, executor)
+    h = Harness(ros_context, executor, **params)
     h.pose(_pose_T())
     hh = np.zeros((150, 150))
     hh[88:102, 75:90] = 0.03                                # walk gait (obstacle ahead)
@@ -206,7 +208,7 @@ def _stance_scene(ros_context, executor):
 def test_plans_start_from_the_controllers_stance(ros_context, executor):
     # The controller says where its feet will stand and which leg is next: the plan starts
     # there (not from the nominal stance), and a malformed stance is refused and counted.
-    h, hh, pub, feet = _stance_scene(ros_context, executor)
+    h, hh, pub, feet = _stance_scene(ros_context, executor, check_steps=0)   # dry-run all
     feet[0, 0] += 0.03                                      # LF already a step ahead
     pub.publish(_stance_msg(feet, Footstep.LEG_RH, 1001))
     assert spin_until(executor, lambda: h.node.stance is not None, 5.0)
@@ -229,6 +231,34 @@ def test_plans_start_from_the_controllers_stance(ros_context, executor):
     pub.publish(bad)
     assert spin_until(executor, lambda: h.node.counters.counts.get('bad_stance', 0) > 0, 5.0)
     assert h.node.stance[1] == Footstep.LEG_RH                 # the good one is kept
+
+
+def test_the_dry_run_checks_only_the_plans_first_steps(ros_context, executor, monkeypatch):
+    # check_steps: the dry run covers the steps the controller starts before the next plan
+    # (about one per plan); the rest stand as planned (the controller refuses a bad one
+    # itself), and a refusal among the checked ones still cuts the plan there.
+    import footstep_planner_node.node as node_mod
+    given, accept = [], {'n': 99}
+
+    def fake(robot, cfg, feet, legs, positions, *a, **k):
+        given.append(len(legs))
+        n = min(accept['n'], len(legs))
+        return n, ('' if n == len(legs) else 'fake refusal')
+    monkeypatch.setattr(node_mod, 'check_footsteps', fake)
+    h, hh, pub, feet = _stance_scene(ros_context, executor, check_steps=2)
+    pub.publish(_stance_msg(feet, Footstep.LEG_RH, 1001))
+    assert spin_until(executor, lambda: h.node.stance is not None, 5.0)
+    want = fs.plan_footsteps(_grid(hh), ROBOT, _pose_T(), feet=feet, first_leg=Footstep.LEG_RH)
+    assert len(want.footsteps) == 4
+    plan = h.send_map(grid_to_msg(_grid(hh)), sec=1001)
+    assert given == [2] and len(plan.footsteps) == 4, plan.status_text
+    accept['n'] = 1                                  # the second step refused: cut after one
+    plan = h.send_map(grid_to_msg(_grid(hh)), sec=1001)
+    assert given[-1] == 2 and len(plan.footsteps) == 1 and 'fake refusal' in plan.status_text
+    h.node.node_cfg = dataclasses.replace(h.node.node_cfg, check_steps=0)   # every step
+    accept['n'] = 99
+    plan = h.send_map(grid_to_msg(_grid(hh)), sec=1001)
+    assert given[-1] == 4 and len(plan.footsteps) == 4
 
 
 def test_a_step_the_controller_refused_is_not_offered_again(ros_context, executor):
