@@ -71,6 +71,12 @@ class FootstepNodeConfig:
     robot: str = param('littledog', 'robot profile in config/robots/ (geometry, camera mount, '
                        'gait defaults)')
     find_patches: bool = param(True, 'run the contact-patch detector on /stereo/points')
+    patches_on_pose: bool = param(
+        True, 'find a cloud\'s contact patches when the mapper\'s pose for its stamp arrives '
+        '(/icp/pose) instead of on the cloud\'s arrival: the detector (~12 ms of CPU) then runs '
+        'beside the terrain fill rather than beside the ICP, both on the capture-to-plan path, '
+        'and places the patches at the capture\'s own pose, not the previous capture\'s. '
+        'Without a mapper pose yet, on arrival')
     use_patches: bool = param(True, 'let salient patches lower the foothold cost')
     patch_max_age_s: float = param(2.0, 'patches older than this (vs the map stamp) are not '
                                    'used for planning [s]', 0.0, 3600.0)
@@ -198,6 +204,7 @@ class FootstepPlannerNode(Node):
         self.goal_xy: Optional[np.ndarray] = None
         self.imu: Optional[tuple] = None          # (stamp_s, quaternion xyzw)
         self.patches_map: Optional[PatchSet] = None
+        self._cloud_pending = None      # a cloud waiting for its /icp/pose (patches_on_pose)
         self.patches_stamp: float = -np.inf
         self.last_plan: Optional[fs.FootstepPlan] = None
         self.goals_repeated = 0
@@ -272,6 +279,12 @@ class FootstepPlannerNode(Node):
             self.T_map_base = pose_to_matrix(msg.pose)
         except ValueError as exc:
             self.counters.bump('bad_pose', f'/icp/pose refused: {exc}')
+            return
+        cloud = self._cloud_pending
+        if cloud is not None and stamp_to_sec(msg.header.stamp) >= \
+                stamp_to_sec(cloud.header.stamp) - 1e-9:
+            self._cloud_pending = None
+            self._find_patches(cloud)
 
     def _on_stance(self, msg: Stance) -> None:
         try:
@@ -316,6 +329,15 @@ class FootstepPlannerNode(Node):
     def _on_cloud(self, msg: PointCloud2) -> None:
         if not self.node_cfg.find_patches:
             return
+        if self.node_cfg.patches_on_pose and self.T_map_base is not None:
+            if self._cloud_pending is not None:
+                self.counters.bump('cloud_without_pose', 'no /icp/pose at or after a cloud\'s '
+                                   'stamp came before the next cloud: its patches skipped')
+            self._cloud_pending = msg
+            return
+        self._find_patches(msg)
+
+    def _find_patches(self, msg: PointCloud2) -> None:
         if self.imu is None:
             self.counters.bump('no_imu', 'cloud dropped: no IMU orientation received yet')
             return

@@ -83,9 +83,10 @@ class Harness:
                           and self.pub_pose.get_subscription_count() > 0
                           and self.node.pub_plan.get_subscription_count() > 0, 5.0)
 
-    def pose(self, T):
+    def pose(self, T, sec=0):
         m = PoseStamped()
         m.header.frame_id = 'map'
+        m.header.stamp.sec = sec
         m.pose = matrix_to_pose(T)
         n = len(self.node.counters.counts)
         self.pub_pose.publish(m)
@@ -338,9 +339,13 @@ def test_bad_inputs_give_explanatory_empty_plans(ros_context, executor):
     assert plan.status == FootstepPlan.STATUS_OK
 
 
-def test_cloud_and_imu_give_contact_patches_on_the_ground(ros_context, executor):
+@pytest.mark.parametrize('on_pose', [True, False])
+def test_cloud_and_imu_give_contact_patches_on_the_ground(ros_context, executor, on_pose):
+    # patches_on_pose (default): a cloud waits for the mapper's pose of its stamp, so the
+    # detector runs beside the terrain fill, not the ICP; off: on the cloud's arrival.
     params = dict(QUADRUPED_PATCHES)
     params['planner.horizon_steps'] = 8       # patches are two steps ahead (the fixation point)
+    params['patches_on_pose'] = on_pose
     h = Harness(ros_context, executor, **params)
     T_map_base = _pose_T(0.0, 0.0)
     h.pose(T_map_base)
@@ -358,10 +363,22 @@ def test_cloud_and_imu_give_contact_patches_on_the_ground(ros_context, executor)
     imu.orientation.x, imu.orientation.y, imu.orientation.z, imu.orientation.w = q
     cloud = xyz_to_cloud(pts, 'camera_optical', 10.0)
     h.pub_cloud.publish(cloud)                               # before any IMU: counted, dropped
+    if on_pose:
+        assert not spin_until(executor, lambda: h.node.counters['no_imu'] > 0, 0.5)
+        h.pose(T_map_base, sec=10)                           # the cloud's own pose
     assert spin_until(executor, lambda: h.node.counters['no_imu'] == 1, 5.0)
     h.pub_imu.publish(imu)
     assert spin_until(executor, lambda: h.node.imu is not None, 5.0)
     h.pub_cloud.publish(cloud)
+    if on_pose:
+        assert spin_until(executor, lambda: h.node._cloud_pending is not None, 5.0)
+        assert not spin_until(executor, lambda: len(h.patches) > 0, 0.5)   # waits
+        h.pose(T_map_base, sec=9)                            # an older pose: still waits
+        assert not spin_until(executor, lambda: len(h.patches) > 0, 0.3)
+        assert h.node._cloud_pending is not None
+        h.pub_cloud.publish(cloud)                           # replaced before its pose came
+        assert spin_until(executor, lambda: h.node.counters['cloud_without_pose'] == 1, 5.0)
+        h.pose(T_map_base, sec=10)
     assert spin_until(executor, lambda: len(h.patches) > 0, 10.0)
     msg = h.patches[-1]
     assert msg.header.frame_id == 'map' and len(msg.patches) >= 50

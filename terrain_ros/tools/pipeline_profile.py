@@ -35,7 +35,9 @@ message the stage worked on):
     fill       terrain_fill's update: whichever callback (/map/fine, /map/capture_poses, or the
                emulated ``process_period_s`` timer) actually ran it
     plan_map   footstep_planner's /map/filled callback: map conversion, cost, replan
-    patches    footstep_planner's /stereo/points callback: contact patches
+    patches    footstep_planner's contact patches of a cloud: in its /icp/pose callback
+               (``patches_on_pose``, the cloud waits from its own callback, ``patches_in``),
+               else in the /stereo/points callback
     plan_goal  footstep_planner's /goal_pose callback (replans on a new goal; per call)
 
 and the small callbacks (odometry, IMU, joint states, stance, pose, camera info, the image
@@ -108,7 +110,7 @@ PARAM_FILES = ('stereo_node.yaml', 'icp_mapper.yaml', 'terrain_fill.yaml',
 CHAIN = ('stereo', 'icp', 'fill', 'plan_map')
 STAGES = CHAIN + ('patches', 'plan_goal')
 SMALL = ('stereo_input', 'camera_info', 'icp_odom', 'icp_imu', 'icp_joints', 'icp_coarse',
-         'fill_input', 'fill_stance', 'plan_imu', 'plan_pose', 'plan_stance')
+         'fill_input', 'fill_stance', 'plan_imu', 'plan_pose', 'plan_stance', 'patches_in')
 # Stages whose calls belong to one capture (the stamp of the message they work on).
 PER_CAPTURE = ('stereo', 'icp', 'fill', 'plan_map', 'patches')
 
@@ -483,7 +485,9 @@ def run_profile(bag: Path, reader, robot: Tuple[str, str], library_height: Tuple
             elif topic == '/stereo/points':        # each node deserialises its own copy
                 R.simple('icp', M._on_cloud, raw, types[topic], peek_stamp(raw))
                 if P.node_cfg.find_patches:
-                    R.simple('patches', P._on_cloud, raw, types[topic], peek_stamp(raw))
+                    waits = P.node_cfg.patches_on_pose and P.T_map_base is not None
+                    R.simple('patches_in' if waits else 'patches', P._on_cloud, raw,
+                             types[topic], peek_stamp(raw))
             elif topic == '/stereo/points_coarse':
                 if M.node_cfg.use_coarse_cloud:
                     R.simple('icp_coarse', M._on_coarse, raw, types[topic])
@@ -504,7 +508,11 @@ def run_profile(bag: Path, reader, robot: Tuple[str, str], library_height: Tuple
                 R.simple('fill_stance', F._on_stance, raw, types[topic])
                 R.simple('plan_stance', P._on_stance, raw, types[topic])
             elif topic == '/icp/pose':
-                R.simple('plan_pose', P._on_pose, raw, types[topic])
+                if P._cloud_pending is not None:          # its patches run in this callback
+                    R.simple('patches', P._on_pose, raw, types[topic],
+                             stamp_key(P._cloud_pending.header.stamp))
+                else:
+                    R.simple('plan_pose', P._on_pose, raw, types[topic])
             elif topic == '/map/filled':
                 R.simple('plan_map', P._on_map, raw, types[topic], peek_stamp(raw))
             elif topic == '/goal_pose':
