@@ -90,7 +90,7 @@ class FootstepNodeConfig:
         2, 'dry-run only the first this many steps of a plan (0 = every step): plans are '
         'replaced twice a second and the controller starts about one step per plan (rocks-6cm '
         'seed 130: 77 steps in 245 plans); a later step the controller cannot execute it '
-        'refuses itself and stands for the next plan. Each checked step costs the plan ~6 ms '
+        'refuses itself and stands for the next plan. Each checked step costs the plan ~5 ms '
         'of CPU on the capture-to-plan path', 0, 1000)
     walking_config_file: str = param(
         '', 'the walking controller\'s parameter YAML (key walking_controller, e.g. '
