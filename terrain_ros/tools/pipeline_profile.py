@@ -485,9 +485,11 @@ def run_profile(bag: Path, reader, robot: Tuple[str, str], library_height: Tuple
             elif topic == '/stereo/points':        # each node deserialises its own copy
                 R.simple('icp', M._on_cloud, raw, types[topic], peek_stamp(raw))
                 if P.node_cfg.find_patches:
-                    waits = P.node_cfg.patches_on_pose and P.T_map_base is not None
-                    R.simple('patches_in' if waits else 'patches', P._on_cloud, raw,
-                             types[topic], peek_stamp(raw))
+                    # the node either finds the patches now or keeps the cloud for its pose
+                    R.call(('patches', 'patches_in'),
+                           lambda: P._on_cloud(deserialize_message(raw, types[topic])),
+                           lambda: ('patches_in' if P._cloud_pending is not None
+                                    else 'patches', peek_stamp(raw)))
             elif topic == '/stereo/points_coarse':
                 if M.node_cfg.use_coarse_cloud:
                     R.simple('icp_coarse', M._on_coarse, raw, types[topic])
