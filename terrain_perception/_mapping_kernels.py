@@ -20,6 +20,10 @@ the points and one over the touched cells:
   gather of an organized (strided) cloud, widened to float64.
 * :func:`cloud_height_normals` - ``mapping.cloud_height_normals`` (the coarse model's normals
   of each capture) in one pass per step instead of ~30 temporaries.
+* :func:`isolated_cells` - ``mapping.isolated_cells`` (the lone mismatches hidden from every
+  published fine map): the neighbours' median and the islands' flood fill in two passes
+  instead of a stack of neighbour gathers, ``np.nanmedian``, a dilation and a labelling
+  (4.3 -> 1.3 ms on the demo's 300 x 300 map).
 
 Same float64 operations in the same order, so the results are bitwise equal to the numpy code
 (``mapping.FineHeightMap``, ``valid_points`` and ``cloud_height_normals`` keep it as the
@@ -385,3 +389,86 @@ def cloud_height_normals(points, lo_x, lo_y, r, half_width):
         out[k, 1] = b / norm
         out[k, 2] = 1.0 / norm
     return out
+
+
+_in_b1_2d = types.Array(types.boolean, 2, 'C', readonly=True)
+
+
+@njit(types.void(_in_f8_2d, _in_b1_2d, _in_b1_2d, _i8, _f8, _i8, types.boolean[:, ::1]),
+      **_JIT)
+def isolated_cells(h, obs, few, min_neighbours, gate_m, island_cells, out):
+    """``out`` (nx, ny): ``mapping.isolated_cells`` on the heights ``h``, the observed cells
+    ``obs`` (finite heights) and the candidates ``few`` (observed, at most max_count samples).
+    The neighbours' median is ``np.nanmedian``'s (the middle value, or the mean of the two
+    middle ones); the islands are the 8-connected components of ``obs`` dilated by one cell
+    (``ndimage.label`` of ``ndimage.binary_dilation``), found by a flood fill."""
+    nx, ny = h.shape
+    vals = np.empty(8)
+    for i in range(nx):
+        for j in range(ny):
+            out[i, j] = False
+            if not few[i, j]:
+                continue
+            n = 0
+            for di in range(-1, 2):
+                for dj in range(-1, 2):
+                    a, b = i + di, j + dj
+                    if (di != 0 or dj != 0) and 0 <= a < nx and 0 <= b < ny and obs[a, b]:
+                        # insertion sort: at most 8 values
+                        v = h[a, b]
+                        k = n
+                        while k > 0 and vals[k - 1] > v:
+                            vals[k] = vals[k - 1]
+                            k -= 1
+                        vals[k] = v
+                        n += 1
+            if n < min_neighbours:
+                out[i, j] = True
+            elif n > 0:
+                med = vals[n // 2] if n % 2 == 1 else (vals[n // 2 - 1] + vals[n // 2]) / 2.0
+                out[i, j] = abs(h[i, j] - med) > gate_m
+    if island_cells <= 1:
+        return
+    # the dilated mask: a cell within one cell of an observed one
+    dil = np.zeros((nx, ny), np.bool_)
+    for i in range(nx):
+        for j in range(ny):
+            if obs[i, j]:
+                for a in range(max(i - 1, 0), min(i + 2, nx)):
+                    for b in range(max(j - 1, 0), min(j + 2, ny)):
+                        dil[a, b] = True
+    label = np.full((nx, ny), -1, np.int64)
+    stack = np.empty(nx * ny, np.int64)
+    members = np.empty(nx * ny, np.int64)
+    for i0 in range(nx):
+        for j0 in range(ny):
+            if not dil[i0, j0] or label[i0, j0] >= 0:
+                continue
+            lab = i0 * ny + j0
+            label[i0, j0] = lab
+            stack[0] = lab
+            top = 1
+            m = 0
+            size = 0
+            supported = False
+            while top > 0:
+                top -= 1
+                c = stack[top]
+                i, j = c // ny, c % ny
+                if obs[i, j]:
+                    members[m] = c
+                    m += 1
+                    size += 1
+                    if not few[i, j]:
+                        supported = True
+                for a in range(max(i - 1, 0), min(i + 2, nx)):
+                    for b in range(max(j - 1, 0), min(j + 2, ny)):
+                        if dil[a, b] and label[a, b] < 0:
+                            label[a, b] = lab
+                            stack[top] = a * ny + b
+                            top += 1
+            if size < island_cells and not supported:
+                for k in range(m):
+                    c = members[k]
+                    if few[c // ny, c % ny]:
+                        out[c // ny, c % ny] = True

@@ -1315,12 +1315,18 @@ def isolated_cells(grid: GridMap, max_count: int, min_neighbours: int,
     observed cells (cells at most one unobserved cell apart are joined) none of which has more
     than ``max_count`` samples: a cluster of mismatches from one capture vouches for itself
     through the neighbour rule (four neighbouring single samples 0.67 m under the ground in a
-    graph test). A cell with more samples is never flagged."""
+    graph test). A cell with more samples is never flagged. The compiled kernel
+    (``_mapping_kernels.isolated_cells``) gives the same cells."""
     h = np.asarray(grid[ELEVATION], np.float64)
     obs = (grid[OBSERVED] > 0.5) & np.isfinite(h) if OBSERVED in grid else np.isfinite(h)
     few = obs & (np.asarray(grid[COUNT]) <= max_count) if COUNT in grid else obs
     out = np.zeros(h.shape, bool)
     if not few.any():
+        return out
+    if _kernels is not None:
+        _kernels.isolated_cells(np.ascontiguousarray(h), np.ascontiguousarray(obs),
+                                np.ascontiguousarray(few), int(min_neighbours), float(gate_m),
+                                int(island_cells), out)
         return out
     ii, jj = np.nonzero(few)
     hp = np.pad(np.where(obs, h, np.nan), 1, constant_values=np.nan)

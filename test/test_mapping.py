@@ -794,6 +794,35 @@ def test_fine_map_kernels_equal_the_numpy_code(gate, weighted):
         np.testing.assert_array_equal(odd[True][5][k], odd[False][5][k], err_msg=k)
 
 
+@pytest.mark.parametrize('min_neighbours,island_cells', [(2, 20), (0, 0), (3, 5), (8, 1)])
+def test_isolated_cells_kernel_equals_the_numpy_code(min_neighbours, island_cells):
+    """The compiled isolated_cells flags exactly the numpy reference's cells (neighbour count,
+    the neighbours' median gate and the unsupported islands) on sparse, noisy maps with
+    single-sample clusters, lone cells and NaN heights."""
+    from terrain_perception import _mapping_kernels  # noqa: F401 (numba is a dependency)
+    rng = np.random.default_rng(3)
+    for trial in range(6):
+        shape = (int(rng.integers(1, 60)), int(rng.integers(1, 70)))
+        h = rng.normal(0.0, 0.03, shape)
+        obs = rng.random(shape) < rng.uniform(0.05, 0.9)
+        count = np.where(obs, rng.choice([1, 2, 3, 9], shape, p=[0.4, 0.2, 0.2, 0.2]), 0)
+        h[rng.random(shape) < 0.03] += 0.3                  # mismatches above the gate
+        h[rng.random(shape) < 0.02] = np.nan                # observed but no height
+        grid = GridMap(0.01, (0.0, 0.0), shape, {
+            ELEVATION: np.where(obs, h, np.nan).astype(np.float32),
+            OBSERVED: obs.astype(np.float32), 'count': count.astype(np.float32)})
+        got = {}
+        for compiled in (True, False):
+            mp.use_compiled_kernels(compiled)
+            try:
+                got[compiled] = mp.isolated_cells(grid, 2, min_neighbours, 0.05, island_cells)
+            finally:
+                mp.use_compiled_kernels(None)
+        np.testing.assert_array_equal(got[True], got[False])
+        if trial == 0:
+            assert got[True].any() and not got[True].all()
+
+
 def test_lone_single_sample_cells_are_published_unobserved_and_kept():
     """The graph test's failure shape: flat ground observed densely (4 samples per cell), a
     pair of single-sample cells 0.75 m below it off the observed area, a 2 x 2 cluster of them
