@@ -141,22 +141,31 @@ def kolter_features(heights: np.ndarray, resolution_m: float,
     shh = _sep(hz * hz, one, one)
 
     # Weighted least-squares plane a + b*u + c*v over the known cells of each window, only
-    # where the features are kept (a cell of unknown height gets NaN ones): det and solve work
-    # matrix by matrix, so these cells' values are those of the whole grid's, at a fraction of
-    # the cost on a map that is mostly unknown (the moving fill map is ~80 % unknown).
+    # where the features are kept (a cell of unknown height gets NaN ones): the normal
+    # equations are solved cell by cell, so these cells' values are those of the whole grid's,
+    # at a fraction of the cost on a map that is mostly unknown (the moving fill map is ~80 %
+    # unknown). The symmetric 3 x 3 systems are solved in closed form (cofactors, Cramer's
+    # rule): as array expressions ~10x faster than LAPACK's per-matrix det and solve, equal to
+    # them within rounding.
     fit = known & (s0 >= 3)
     f0, fu, fv, fuu, fvv, fuv = (a[fit] for a in (s0, su, sv, suu, svv, suv))
-    mat = np.stack([np.stack([f0, fu, fv], -1), np.stack([fu, fuu, fuv], -1),
-                    np.stack([fv, fuv, fvv], -1)], -2)
-    rhs = np.stack([sh[fit], shu[fit], shv[fit]], -1)
-    det = np.linalg.det(mat)
+    r0, r1, r2 = sh[fit], shu[fit], shv[fit]
+    c11 = fuu * fvv - fuv * fuv
+    c12 = fv * fuv - fu * fvv
+    c13 = fu * fuv - fuu * fv
+    det = f0 * c11 + fu * c12 + fv * c13
     ok = np.abs(det) > 1e-9 * np.maximum(f0, 1.0) ** 3
     grad = np.zeros(h.shape + (2,))
     if ok.any():
         solvable = np.zeros(h.shape, bool)
         solvable[fit] = ok
-        sol = np.linalg.solve(mat[ok], rhs[ok][..., None])[..., 0]
-        grad[solvable] = sol[:, 1:]
+        f0, fu, fv, fuu, fvv, fuv, r0, r1, r2, c12, c13, det = (
+            a[ok] for a in (f0, fu, fv, fuu, fvv, fuv, r0, r1, r2, c12, c13, det))
+        c22 = f0 * fvv - fv * fv
+        c23 = fu * fv - f0 * fuv
+        c33 = f0 * fuu - fu * fu
+        grad[solvable] = np.stack([(c12 * r0 + c22 * r1 + c23 * r2) / det,
+                                   (c13 * r0 + c23 * r1 + c33 * r2) / det], -1)
     # A window with too few known cells to fix a plane has no measurable slope: 0, not NaN, so
     # the other features still rank the cell.
     slope = np.hypot(grad[..., 0], grad[..., 1]) / resolution_m
