@@ -210,3 +210,68 @@ def test_parameter_overrides_win_over_files_and_name_a_started_node(tmp_path):
                              capture_output=True, text=True, timeout=30)
         assert res.returncode != 0 and words in res.stderr, res.stderr
         assert len(res.stderr.strip().splitlines()) == 1, res.stderr
+
+
+def test_an_optional_parameter_file_is_layered_when_present(tmp_path):
+    # 'NAME.yaml?' in params: loaded after the files before it when it exists (a robot's
+    # overlay), skipped when it does not; a missing file without '?' is still an error.
+    from terrain_ros.tools.launch import load_launch_file
+    from terrain_ros.tools.common import ToolError
+    (tmp_path / 'base.yaml').write_text('n:\n  ros__parameters:\n    word: base\n')
+    (tmp_path / 'base.big.yaml').write_text('n:\n  ros__parameters:\n    word: big\n')
+    launch = tmp_path / 'l.yaml'
+    launch.write_text('arguments:\n  size: big\nnodes:\n  - name: n\n    command: [true]\n'
+                      '    params: [base.yaml, "base.${size}.yaml?"]\n')
+
+    def files(**args):
+        cmd = load_launch_file(launch, args)[0].command
+        return [Path(cmd[i + 1]).name for i, a in enumerate(cmd) if a == '--params-file']
+    assert files() == ['base.yaml', 'base.big.yaml']
+    assert files(size='small') == ['base.yaml']
+    launch.write_text('nodes:\n  - name: n\n    command: [true]\n    params: [base.small.yaml]\n')
+    with pytest.raises(ToolError, match='base.small.yaml'):
+        load_launch_file(launch, {})
+
+
+def test_the_frog_planner_gets_its_overlay_over_the_shared_file():
+    # The sim profile with robot:=frog gives the planner config/footstep_planner.frog.yaml
+    # after footstep_planner.yaml: the overlay's keys win, every other key is the shared
+    # file's; LittleDog's planner gets the shared file alone.
+    import yaml
+    from rclpy.parameter import Parameter
+    from footstep_planner_node.node import FootstepPlannerNode
+    from terrain_ros.env import CONFIG_DIR
+    from terrain_ros.tools.launch import load_launch_file
+    overlay = yaml.safe_load((CONFIG_DIR / 'footstep_planner.frog.yaml').read_text())
+    overlay = overlay['footstep_planner']['ros__parameters']['planner']
+    assert overlay, 'the FROG-I overlay sets no planner value'
+    got = {}
+    for robot in ('littledog', 'frog'):
+        spec = [s for s in load_launch_file(CONFIG_DIR / 'launch' / 'sim.yaml', {'robot': robot})
+                if s.name == 'footstep_planner'][0]
+        cmd = spec.command
+        files = [cmd[i + 1] for i, a in enumerate(cmd) if a == '--params-file']
+        args = ['--ros-args', '-r', '__node:=footstep_planner']
+        for f in files:
+            args += ['--params-file', f]
+        import rclpy
+        from rclpy.context import Context
+        ctx = Context()
+        rclpy.init(args=args, context=ctx, domain_id=int(os.environ['ROS_DOMAIN_ID']))
+        try:
+            node = FootstepPlannerNode(context=ctx, parameter_overrides=[
+                Parameter('robot', value=robot)])
+            got[robot] = node.plan_cfg
+            node.destroy_node()
+        finally:
+            rclpy.shutdown(context=ctx)
+    for key, value in overlay.items():
+        assert getattr(got['frog'], key) == pytest.approx(value), key
+        assert getattr(got['littledog'], key) != pytest.approx(value), key
+    import dataclasses
+    same = {f.name for f in dataclasses.fields(got['frog'])} - set(overlay)
+    assert all(getattr(got['frog'], k) == getattr(got['littledog'], k) for k in same)
+    # the ground-truth walks of terrain-bench sim build their planner with the same overlay
+    from terrain_perception.bench.plan import robot_planner_overrides
+    assert robot_planner_overrides('frog') == overlay
+    assert robot_planner_overrides('littledog') == {}

@@ -79,6 +79,16 @@ def load_profile(path: Path = CONFIG):
             make_config(features.CostConfig, data.get('cost', {})))
 
 
+def robot_planner_overrides(robot: str) -> dict:
+    """The ``planner`` keys of ``config/footstep_planner.ROBOT.yaml`` (the robot's overlay
+    of the node's YAML, which the launch profiles load after it), or {} without one."""
+    path = CONFIG.with_name(f'footstep_planner.{robot}.yaml')
+    if not path.is_file():
+        return {}
+    data = yaml.safe_load(path.read_text())['footstep_planner']['ros__parameters']
+    return dict(data.get('planner', {}))
+
+
 def _stats(v):
     v = np.asarray(v, dtype=np.float64)
     if v.size == 0:

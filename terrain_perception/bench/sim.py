@@ -180,7 +180,8 @@ def _rocks_walk(course, start_x: float, goal_x: float, seed: int, sensing: bool 
     planned on the true terrain (receding horizon, every plan dry-run through the controller's
     checks).
     ``planner_kw``/``walking_kw`` override :class:`PlannerConfig`/:class:`WalkingConfig`
-    defaults. With ``trace_path`` the walk is traced (:mod:`terrain_perception.sim.trace`)
+    defaults (the planner's after the robot's overlay, ``config/footstep_planner.ROBOT.yaml``,
+    as the launched node has it). With ``trace_path`` the walk is traced (:mod:`terrain_perception.sim.trace`)
     to that .npz, and a fall's report is returned as ``fall_report``.
 
     The controller's dead reckoning drifts from the truth (the feet slip); without
@@ -219,7 +220,9 @@ def _rocks_walk(course, start_x: float, goal_x: float, seed: int, sensing: bool 
         # Walk gait only: LittleDog's profile has no trot (the controller's trot is Shao's
         # quasi-static one, COG on the diagonal). trot_threshold_m keeps its default: it is also
         # the flatness test of stride_centre 'adaptive'.
+        from terrain_perception.bench.plan import robot_planner_overrides
         planner = FootstepPlanner(m, PlannerConfig(**{'cost_source': 'kolter', 'horizon_steps': 4,
+                                                      **robot_planner_overrides(robot_name),
                                                       **(planner_kw or {})}))
         bad = planner.set_map(course)
         if bad is not None:

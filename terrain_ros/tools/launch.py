@@ -11,7 +11,9 @@ The launch file (see ``config/launch/*.yaml``)::
         executable: stereo_node        # console script in this environment ...
         # module: stereo_node.node     # ... or a Python module run with `python -m`
         params: [stereo_node.yaml]     # parameter files, relative to the launch file's folder
-                                       # or to config/
+                                       # or to config/; later files override earlier ones,
+                                       # and a name ending in '?' may be absent (e.g. a
+                                       # robot's overlay: footstep_planner.${robot}.yaml?)
         parameters: {use_sim_time: true, robot: ${robot}}   # inline overrides
         remappings: {/stereo/points: /cam/points}
         args: []               # extra command-line arguments (before --ros-args)
@@ -102,10 +104,12 @@ def _param_value(v) -> str:
     return str(v)
 
 
-def _find_file(name: str, base: Path) -> Path:
+def _find_file(name: str, base: Path, optional: bool = False) -> Optional[Path]:
     for cand in (Path(name), base / name, CONFIG_DIR / name):
         if cand.is_file():
             return cand.resolve()
+    if optional:
+        return None
     raise ToolError(f'parameter file {name!r} not found (looked in {base} and {CONFIG_DIR})')
 
 
@@ -166,7 +170,11 @@ def load_launch_file(path: Path, cli_args: Dict[str, str],
         cmd += [str(a) for a in n.get('args') or []]
         ros = ['--ros-args', '-r', f'__node:={name}']
         for f in n.get('params') or []:
-            ros += ['--params-file', str(_find_file(f, path.parent))]
+            f = str(f)
+            optional = f.endswith('?')
+            found = _find_file(f[:-1] if optional else f, path.parent, optional)
+            if found is not None:
+                ros += ['--params-file', str(found)]
         for k, v in (n.get('parameters') or {}).items():
             ros += ['-p', f'{k}:={_param_value(v)}']
         mine = overrides.pop(name, {})

@@ -287,6 +287,10 @@ class Replay:
         args = ['--ros-args']
         for f in PARAM_FILES:
             args += ['--params-file', str(CONFIG_DIR / f)]
+            # the robot's overlay, as the launch profiles load it (NODE.ROBOT.yaml?)
+            overlay = CONFIG_DIR / f.replace('.yaml', f'.{robot}.yaml')
+            if overlay.is_file():
+                args += ['--params-file', str(overlay)]
         rclpy.init(args=args, context=self.ctx)
         self.nodes: list = []
         try:
