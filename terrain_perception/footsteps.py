@@ -6,7 +6,8 @@
 * **Receding-horizon search** (paper 000 sec. IV): the next ``horizon_steps`` footsteps in crawl
   order LH, LF, RH, RF, by a small beam search. Each foothold is a cell of its leg's search area
   (``lateral_search_m`` either side of the leg's line; ``blocked_lateral_search_m`` when nothing
-  in that lane is half a stride ahead, so a leg steps around a rock instead of inching up to it)
+  in that lane is half a stride ahead, so a leg steps around a rock instead of inching up to it,
+  and ``empty_lane_lateral_search_m``, if set, when nothing in it is a candidate at all)
   that (a) has a finite cost, (b) was observed, or was filled with a finite line-of-sight upper
   bound close to its value, (c) is safe for the foot on the map (:func:`unsafe_cells`: slope and
   unevenness limits over the foot's radius plus its placement error, on the surface the ball
@@ -103,6 +104,12 @@ class PlannerConfig:
         'whose normal area has no foothold at least half a stride (A/2) ahead, e.g. a rock '
         'filling its lane; the leg then steps around it instead of inching up to it (0 = off) '
         '[m]', 0.0, 1.0)
+    empty_lane_lateral_search_m: float = param(
+        0.0, 'half-width across the walking direction of the search area of a leg whose lane '
+        'holds no foothold candidate at all (e.g. never-observed ground: a hind foot crossing '
+        'the start\'s blind area, where only cells the front feet stood on are footholds); '
+        'wider than blocked_lateral_search_m it reaches the front feet\'s trail beside the '
+        'lane; 0 = as blocked_lateral_search_m [m]', 0.0, 1.0)
     cost_offset: float = param(0.02, 'added to the cost before the omega weighting so that '
                                'equal-cost cells still prefer the area centre [cost units]',
                                0.0, 1e3)
@@ -276,6 +283,11 @@ class FootstepPlan:
     @property
     def ok(self) -> bool:
         return self.status == STATUS_OK
+
+
+#: why a leg's search area has no candidate: no cell is a foothold at all (unobserved, unsafe,
+#: infinite cost), before any stance limit
+_EMPTY_AREA = 'no observed, finite-cost cell in its search area'
 
 
 def failed(status: int, text: str) -> FootstepPlan:
@@ -1139,7 +1151,7 @@ class FootstepPlanner:
         # A step back onto the foot's own cell is no step.
         ok &= np.hypot(*(xy - state.feet[leg, :2]).T) >= 0.75 * g.resolution_m
         if not np.any(ok):
-            return None, 'no observed, finite-cost cell in its search area'
+            return None, _EMPTY_AREA
         fu, fv = self._uv(state.feet)        # the stance along / across the walking line
         if cfg.max_leg_spread_m > 0:
             # No foot further ahead of its nominal place than the rearmost other foot by more
@@ -1204,6 +1216,8 @@ class FootstepPlanner:
         fu0, _ = self._uv(feet0)
         found = self._area_cells(state, leg, fu0, wL0, A, Tb, cfg.lateral_search_m)
         wide = cfg.blocked_lateral_search_m
+        if found[0] is None and found[1] == _EMPTY_AREA and cfg.empty_lane_lateral_search_m > 0:
+            wide = cfg.empty_lane_lateral_search_m
         if wide > cfg.lateral_search_m and (
                 found[0] is None or np.max(found[1]) < fu0[leg] + 0.5 * A):
             # Blocked: nothing half a stride ahead in the leg's lane (typically a rock filling
