@@ -233,21 +233,24 @@ def test_an_optional_parameter_file_is_layered_when_present(tmp_path):
         load_launch_file(launch, {})
 
 
-def test_the_frog_planner_gets_its_overlay_over_the_shared_file():
-    # The sim profile with robot:=frog gives the planner config/footstep_planner.frog.yaml
-    # after footstep_planner.yaml: the overlay's keys win, every other key is the shared
-    # file's; LittleDog's planner gets the shared file alone.
+def test_the_frog_planner_gets_its_overlay_over_the_shared_file(tmp_path):
+    # The sim profile with robot:=frog, as terrain-demo runs it (its preflight copy), gives
+    # the planner config/footstep_planner.frog.yaml after footstep_planner.yaml: the
+    # overlay's keys win, every other key is the shared file's; LittleDog's planner gets the
+    # shared file alone.
     import yaml
     from rclpy.parameter import Parameter
     from footstep_planner_node.node import FootstepPlannerNode
     from terrain_ros.env import CONFIG_DIR
+    from terrain_ros.tools.demo import preflight
     from terrain_ros.tools.launch import load_launch_file
+    preflight(CONFIG_DIR / 'launch' / 'sim.yaml', tmp_path / 'launch.yaml')
     overlay = yaml.safe_load((CONFIG_DIR / 'footstep_planner.frog.yaml').read_text())
     overlay = overlay['footstep_planner']['ros__parameters']['planner']
     assert overlay, 'the FROG-I overlay sets no planner value'
     got = {}
     for robot in ('littledog', 'frog'):
-        spec = [s for s in load_launch_file(CONFIG_DIR / 'launch' / 'sim.yaml', {'robot': robot})
+        spec = [s for s in load_launch_file(tmp_path / 'launch.yaml', {'robot': robot})
                 if s.name == 'footstep_planner'][0]
         cmd = spec.command
         files = [cmd[i + 1] for i, a in enumerate(cmd) if a == '--params-file']

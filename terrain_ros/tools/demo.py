@@ -206,8 +206,10 @@ def preflight(launch_file: Path, out_file: Path) -> Dict[str, dict]:
                 continue
         params = []
         for f in n.get('params') or []:
-            if any(c.is_file() for c in (Path(f), launch_file.parent / f, CONFIG_DIR / f)):
-                params.append(f)
+            f = str(f)
+            if f.endswith('?') or any(c.is_file() for c in (Path(f), launch_file.parent / f,
+                                                             CONFIG_DIR / f)):
+                params.append(f)    # an optional file ('NAME.yaml?') is the launcher's to find
             else:
                 status.setdefault(name, {})['note'] = (
                     f'parameter file {f!r} not found: node runs on its defaults')
