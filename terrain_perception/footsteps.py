@@ -7,7 +7,8 @@
   order LH, LF, RH, RF, by a small beam search. Each foothold is a cell of its leg's search area
   (``lateral_search_m`` either side of the leg's line; ``blocked_lateral_search_m`` when nothing
   in that lane is half a stride ahead, so a leg steps around a rock instead of inching up to it,
-  and ``empty_lane_lateral_search_m``, if set, when nothing in it is a candidate at all)
+  and ``empty_lane_lateral_search_m``, if wider, when nothing in that wider area is a candidate
+  at all)
   that (a) has a finite cost, (b) was observed, or was filled with a finite line-of-sight upper
   bound close to its value, (c) is safe for the foot on the map (:func:`unsafe_cells`: slope and
   unevenness limits over the foot's radius plus its placement error, on the surface the ball
@@ -105,11 +106,11 @@ class PlannerConfig:
         'filling its lane; the leg then steps around it instead of inching up to it (0 = off) '
         '[m]', 0.0, 1.0)
     empty_lane_lateral_search_m: float = param(
-        0.0, 'half-width across the walking direction of the search area of a leg whose lane '
-        'holds no foothold candidate at all (e.g. never-observed ground: a hind foot crossing '
-        'the start\'s blind area, where only cells the front feet stood on are footholds); '
-        'wider than blocked_lateral_search_m it reaches the front feet\'s trail beside the '
-        'lane; 0 = as blocked_lateral_search_m [m]', 0.0, 1.0)
+        0.0, 'half-width across the walking direction of the search area of a blocked leg '
+        'whose blocked_lateral_search_m area holds no foothold candidate at all (e.g. '
+        'never-observed ground: a hind foot crossing the start\'s blind area, where only cells '
+        'the front feet stood on are footholds); wider, it reaches the front feet\'s trail '
+        'beside the lane; 0 (or not wider) = off [m]', 0.0, 1.0)
     cost_offset: float = param(0.02, 'added to the cost before the omega weighting so that '
                                'equal-cost cells still prefer the area centre [cost units]',
                                0.0, 1e3)
@@ -1216,14 +1217,18 @@ class FootstepPlanner:
         fu0, _ = self._uv(feet0)
         found = self._area_cells(state, leg, fu0, wL0, A, Tb, cfg.lateral_search_m)
         wide = cfg.blocked_lateral_search_m
-        if found[0] is None and found[1] == _EMPTY_AREA and cfg.empty_lane_lateral_search_m > 0:
-            wide = cfg.empty_lane_lateral_search_m
         if wide > cfg.lateral_search_m and (
                 found[0] is None or np.max(found[1]) < fu0[leg] + 0.5 * A):
             # Blocked: nothing half a stride ahead in the leg's lane (typically a rock filling
             # it). Inching up to the obstacle only lets the other legs close up on this one, so
             # search around it; the nominal-distance cost still prefers the lane.
             more = self._area_cells(state, leg, fu0, wL0, A, Tb, wide)
+            if more[0] is None and more[1] == _EMPTY_AREA and \
+                    cfg.empty_lane_lateral_search_m > wide:
+                # Not one foothold in the wider search either (unseen ground): wider still,
+                # to the cells beside the lane that the feet stood on.
+                more = self._area_cells(state, leg, fu0, wL0, A, Tb,
+                                        cfg.empty_lane_lateral_search_m)
             if more[0] is not None and (found[0] is None or np.max(more[1]) > np.max(found[1])):
                 found = more
         if found[0] is None:
