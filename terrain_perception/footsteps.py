@@ -106,7 +106,7 @@ class PlannerConfig:
         'filling its lane; the leg then steps around it instead of inching up to it (0 = off) '
         '[m]', 0.0, 1.0)
     empty_lane_lateral_search_m: float = param(
-        0.0, 'half-width across the walking direction of the search area of a blocked leg '
+        0.0, 'half-width across the walking direction of the search area of a blocked hind leg '
         'whose blocked_lateral_search_m area holds no foothold candidate at all (e.g. '
         'never-observed ground: a hind foot crossing the start\'s blind area, where only cells '
         'the front feet stood on are footholds); wider, it reaches the front feet\'s trail '
@@ -1223,10 +1223,11 @@ class FootstepPlanner:
             # it). Inching up to the obstacle only lets the other legs close up on this one, so
             # search around it; the nominal-distance cost still prefers the lane.
             more = self._area_cells(state, leg, fu0, wL0, A, Tb, wide)
-            if more[0] is None and more[1] == _EMPTY_AREA and \
+            if more[0] is None and more[1] == _EMPTY_AREA and leg in (LH, RH) and \
                     cfg.empty_lane_lateral_search_m > wide:
-                # Not one foothold in the wider search either (unseen ground): wider still,
-                # to the cells beside the lane that the feet stood on.
+                # A hind foot with not one foothold in the wider search either (unseen ground,
+                # the start's blind area): wider still, to the cells beside the lane that the
+                # front feet stood on. Not a front foot: ahead of it nothing was stood on.
                 more = self._area_cells(state, leg, fu0, wL0, A, Tb,
                                         cfg.empty_lane_lateral_search_m)
             if more[0] is not None and (found[0] is None or np.max(more[1]) > np.max(found[1])):

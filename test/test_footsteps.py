@@ -580,44 +580,50 @@ def test_a_leg_blocked_in_its_lane_steps_around_the_obstacle():
     assert advance[0.0][0] < 0.5 * A
 
 
-def test_a_leg_whose_lane_was_never_seen_reaches_the_trail_beside_it():
-    """RF's lane (+-7 cm of its nominal line) was never observed up to 30 cm ahead of
-    the foot (FROG-I's hind feet in the start's blind area): no cell of it, nor of the blocked
-    leg's +-6 cm search, is a foothold. With empty_lane_lateral_search_m = 0.12 RF steps
+def test_a_hind_leg_whose_lane_was_never_seen_reaches_the_trail_beside_it():
+    """A leg's lane (+-7 cm of its nominal line) was never observed up to 15 cm ahead of the
+    foot (FROG-I's hind feet in the start's blind area): no cell of it, nor of the blocked
+    leg's +-6 cm search, is a foothold. With empty_lane_lateral_search_m = 0.12 RH steps
     forward onto the seen ground beside the lane (the front feet's trail in the loop); with 0
-    (the blocked search alone, the test's counterfactual) RF has no foothold."""
+    (the blocked search alone, the test's counterfactual) RH has no foothold. RF, a front
+    foot, in the same situation does not search wider: ahead of it nothing was stood on."""
     n = 150
     origin = (-0.75, -0.75)
     nom = np.array(ROBOT.nominal_feet)
     x = origin[0] + (np.arange(n) + 0.5) * RES
     y = origin[1] + (np.arange(n) + 0.5) * RES
     X, Y = np.meshgrid(x, y, indexing='ij')
-    rf = nom[fs.RF]
-    unseen = (X > rf[0] + 0.005) & (X < rf[0] + 0.30) & (np.abs(Y - rf[1]) < 0.07)
-    g = _grid(np.zeros((n, n)), origin)
-    g['observed'] = (~unseen).astype(np.float32)
-    g['elevation'][unseen] = np.nan
-    g['cost'][unseen] = np.nan
-    feet = nom.copy()
-    feet[:, 2] = 0.0
-    feet[fs.LF, 1] -= 0.04          # the stance-width limit from LF then admits RF's detour
     got = {}
-    for wide in (0.12, 0.0):
-        cfg = fs.PlannerConfig(trot_threshold_m=0.0, horizon_steps=1, recovery=False,
-                               blocked_lateral_search_m=0.06, empty_lane_lateral_search_m=wide)
-        planner = fs.FootstepPlanner(ROBOT, cfg)
-        assert planner.set_map(g) is None
-        assert not planner.allowed[unseen].any()
-        plan = planner.plan(_pose(), np.array([0.6, 0.0]), feet=feet, first_leg=fs.RF)
-        got[wide] = plan
-    plan = got[0.12]
-    assert plan.ok and plan.footsteps[0].leg == fs.RF, plan.status_text
+    for leg, mate in ((fs.RH, fs.LH), (fs.RF, fs.LF)):
+        foot = nom[leg]
+        unseen = (X > foot[0] + 0.005) & (X < foot[0] + 0.15) & (np.abs(Y - foot[1]) < 0.07)
+        g = _grid(np.zeros((n, n)), origin)
+        g['observed'] = (~unseen).astype(np.float32)
+        g['elevation'][unseen] = np.nan
+        g['cost'][unseen] = np.nan
+        feet = nom.copy()
+        feet[:, 2] = 0.0
+        feet[mate, 1] -= 0.04       # the stance-width limit from its pair admits the detour
+        for wide in (0.12, 0.0):
+            cfg = fs.PlannerConfig(trot_threshold_m=0.0, horizon_steps=1, recovery=False,
+                                   blocked_lateral_search_m=0.06,
+                                   empty_lane_lateral_search_m=wide)
+            planner = fs.FootstepPlanner(ROBOT, cfg)
+            assert planner.set_map(g) is None
+            assert not planner.allowed[unseen].any()
+            got[leg, wide] = planner.plan(_pose(), np.array([0.6, 0.0]), feet=feet,
+                                          first_leg=leg)
+
+    def steps(plan, leg):
+        return plan.ok and plan.footsteps and plan.footsteps[0].leg == leg
+    plan = got[fs.RH, 0.12]
+    assert steps(plan, fs.RH), plan.status_text
     _check_plan_feasible(plan, fs.PlannerConfig(trot_threshold_m=0.0, horizon_steps=1,
                                                 recovery=False))
     p = plan.footsteps[0].position
-    assert p[0] > rf[0] + 0.01 and abs(p[1] - rf[1]) >= 0.07, p
-    assert not (got[0.0].ok and got[0.0].footsteps and got[0.0].footsteps[0].leg == fs.RF), \
-        got[0.0].status_text
+    assert p[0] > nom[fs.RH, 0] + 0.01 and abs(p[1] - nom[fs.RH, 1]) >= 0.07, p
+    assert not steps(got[fs.RH, 0.0], fs.RH), got[fs.RH, 0.0].status_text
+    assert not steps(got[fs.RF, 0.12], fs.RF), got[fs.RF, 0.12].status_text
 
 
 def _rf_gap_to_lf(g, feet, **limits) -> float:
