@@ -534,17 +534,21 @@ def test_a_front_foot_leads_its_hind_foot_by_at_most_the_stance_length():
     assert lead[0.0] > 1.3 * spacing + 0.02
 
 
+def _cell_centres(n: int, origin) -> tuple:
+    """``(X, Y)`` (n, n): the cell centres [m] of an n x n grid of RES cells at ``origin``."""
+    x = origin[0] + (np.arange(n) + 0.5) * RES
+    y = origin[1] + (np.arange(n) + 0.5) * RES
+    return np.meshgrid(x, y, indexing='ij')
+
+
 def _blocked_lane_scene(offset_m: float = 0.0):
     """A 5 cm roof-shaped block in RF's lane (+-4.5 cm of its nominal line, moved ``offset_m``
     to the left) from 5 cm to 30 cm ahead of the foot, on flat ground: ``(grid, block mask,
     nominal feet, stance on the ground)``. A roof, not a flat top: every cell on it is steeper
     than the slope limit."""
-    n = 150
-    origin = (-0.75, -0.75)
+    n, origin = 150, (-0.75, -0.75)
     nom = np.array(ROBOT.nominal_feet)
-    x = origin[0] + (np.arange(n) + 0.5) * RES
-    y = origin[1] + (np.arange(n) + 0.5) * RES
-    X, Y = np.meshgrid(x, y, indexing='ij')
+    X, Y = _cell_centres(n, origin)
     rf = nom[fs.RF]
     yc = rf[1] + offset_m
     box = (X > rf[0] + 0.05) & (X < rf[0] + 0.30) & (np.abs(Y - yc) < 0.045)
@@ -587,12 +591,9 @@ def test_a_hind_leg_whose_lane_was_never_seen_reaches_the_trail_beside_it():
     forward onto the seen ground beside the lane (the front feet's trail in the loop); with 0
     (the blocked search alone, the test's counterfactual) RH has no foothold. RF, a front
     foot, in the same situation does not search wider: ahead of it nothing was stood on."""
-    n = 150
-    origin = (-0.75, -0.75)
+    n, origin = 150, (-0.75, -0.75)
     nom = np.array(ROBOT.nominal_feet)
-    x = origin[0] + (np.arange(n) + 0.5) * RES
-    y = origin[1] + (np.arange(n) + 0.5) * RES
-    X, Y = np.meshgrid(x, y, indexing='ij')
+    X, Y = _cell_centres(n, origin)
     got = {}
     for leg, mate in ((fs.RH, fs.LH), (fs.RF, fs.LF)):
         foot = nom[leg]
