@@ -181,8 +181,9 @@ def _rocks_walk(course, start_x: float, goal_x: float, seed: int, sensing: bool 
     checks).
     ``planner_kw``/``walking_kw`` override :class:`PlannerConfig`/:class:`WalkingConfig`
     defaults (the planner's after the robot's overlay, ``config/footstep_planner.ROBOT.yaml``,
-    as the launched node has it). With ``trace_path`` the walk is traced (:mod:`terrain_perception.sim.trace`)
-    to that .npz, and a fall's report is returned as ``fall_report``.
+    as the launched node has it). With ``trace_path`` the walk is traced
+    (:mod:`terrain_perception.sim.trace`) to that .npz, and a fall's report is returned as
+    ``fall_report``.
 
     The controller's dead reckoning drifts from the truth (the feet slip); without
     ``localise`` nothing corrects it (odom = world), so footsteps planned on the true

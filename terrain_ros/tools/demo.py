@@ -57,8 +57,8 @@ import yaml
 
 from terrain_ros.env import CONFIG_DIR, safe_env
 from terrain_ros.tools.common import ToolError, fail
-from terrain_ros.tools.launch import (Launcher, NodeSpec, _die_with_parent, child_setup,
-                                      load_launch_file)
+from terrain_ros.tools.launch import (Launcher, NodeSpec, _die_with_parent, _find_file,
+                                      child_setup, load_launch_file)
 
 PROG = 'terrain-demo'
 REPO_DIR = CONFIG_DIR.parent
@@ -207,9 +207,9 @@ def preflight(launch_file: Path, out_file: Path) -> Dict[str, dict]:
         params = []
         for f in n.get('params') or []:
             f = str(f)
-            if f.endswith('?') or any(c.is_file() for c in (Path(f), launch_file.parent / f,
-                                                             CONFIG_DIR / f)):
-                params.append(f)    # an optional file ('NAME.yaml?') is the launcher's to find
+            # an optional file ('NAME.yaml?') is the launcher's to find, or to skip
+            if f.endswith('?') or _find_file(f, launch_file.parent, optional=True):
+                params.append(f)
             else:
                 status.setdefault(name, {})['note'] = (
                     f'parameter file {f!r} not found: node runs on its defaults')
