@@ -345,6 +345,9 @@ class IcpMapperNode(Node):
         self._publish_fine()
         for k, v in self.mapper.counters.items():
             self.counters.counts[f'mapper_{k}'] = v
+        # the IMU's estimated yaw drift [deg/s] (a gyro bias; see imu_yaw_drift_window_s)
+        self.counters.counts['mapper_imu_yaw_drift_deg_s'] = round(
+            self.mapper.imu_yaw_drift_deg_s, 4)
         self.counters.publish()
 
 

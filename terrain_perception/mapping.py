@@ -110,6 +110,18 @@ class MapperConfig:
                                    'from the robot are dropped', 0.2, 50.0)
     coarse_max_points: int = param(30000, 'cap on coarse-model points (newest kept)',
                                    100, 10_000_000)
+    coarse_fusion: str = param(
+        'weighted', 'how a capture joins the coarse model: weighted = each voxel (a fixed grid '
+        'in map) keeps the mean of its observations, up to coarse_max_weight of them; '
+        'average = Open3D\'s voxel down-sampling of model + capture, where a re-observed '
+        'voxel moves half-way to the newest capture, so the model is the last few captures '
+        'and follows a slow drift of the poses they were fused at (FROG-I on the stones, '
+        'seed 146: the map\'s yaw followed the IMU\'s 0.045 deg/s yaw drift)',
+        choices=('weighted', 'average'))
+    coarse_max_weight: float = param(
+        20.0, 'weighted fusion: a voxel\'s observation count stops growing here, so it '
+        'follows the newest coarse_max_weight captures (a changed or misplaced surface is '
+        'forgotten; 1 = the newest capture replaces the voxel)', 1.0, 1e9)
     model_from: str = param('fine', 'cloud the coarse model is voxelised from: the full cloud '
                             '(voxel centroids of many samples, less bias) or the ICP sub-sample',
                             choices=('fine', 'coarse'))
@@ -226,6 +238,17 @@ class MapperConfig:
         1.0, "with the IMU rotation prior: share of ICP's yaw correction kept (1 = ICP's yaw; "
         "0 = the IMU's yaw change alone); the translation follows ICP's cost valley to the "
         'kept yaw (a constant-gain filter of the two yaw sources, see blend_yaw)', 0.0, 1.0)
+    imu_yaw_drift_window_s: float = param(
+        30.0, 'with the IMU rotation prior: the IMU\'s yaw drift rate (a gyro bias; it has no '
+        'absolute yaw) is the sum of the yaw corrections ICP made in this many seconds of '
+        'captures, divided by their span, and the prior\'s yaw is turned by the rate times '
+        'the time since the last accepted capture. The estimate moves only at captures whose '
+        'geometry constrained every direction, so it holds while the view is flat and ICP '
+        'keeps the yaw at the prior (FROG-I on the stones, seed 146: 70 s of flat view past '
+        'the stones, the pose\'s yaw drifted 2.5 deg with the IMU\'s 0.045 deg/s); '
+        'used from half a window of history; 0 = off', 0.0, 1e6)
+    imu_yaw_drift_max_deg_s: float = param(0.5, 'largest yaw drift rate [deg/s] the estimate '
+                                           'may take (a larger one is clipped)', 0.0, 180.0)
     use_gravity_prior: bool = param(False, 'level the prior with a measured up vector (IMU)')
     use_ground_plane_prior: bool = param(False, 'level the prior with a RANSAC ground plane')
     ground_plane_threshold_m: float = param(0.01, 'RANSAC inlier distance [m]', 1e-4, 1.0)
@@ -1351,6 +1374,72 @@ def isolated_cells(grid: GridMap, max_count: int, min_neighbours: int,
     return out
 
 
+def _rot_z(angle_rad: float) -> np.ndarray:
+    """Rotation matrix (3x3) about z by ``angle_rad``."""
+    ca, sa = np.cos(angle_rad), np.sin(angle_rad)
+    return np.array([[ca, -sa, 0.0], [sa, ca, 0.0], [0.0, 0.0, 1.0]])
+
+
+def _voxel_keys(points: np.ndarray, voxel_m: float) -> np.ndarray:
+    """One int64 per point naming its voxel of a fixed grid (cell ``floor(p / voxel_m)``; 21
+    bits per axis, so +-10 km at 1 cm)."""
+    ijk = np.floor(points / voxel_m).astype(np.int64) + (1 << 20)
+    if ijk.size and (ijk.min() < 0 or ijk.max() >= (1 << 21)):
+        raise ValueError(f'coarse model point beyond +-{(1 << 20) * voxel_m:.0f} m of the map '
+                         'origin')
+    return (ijk[:, 0] << 42) | (ijk[:, 1] << 21) | ijk[:, 2]
+
+
+def voxel_centroids(points: np.ndarray, voxel_m: float) -> np.ndarray:
+    """The mean of the points in each voxel of the fixed grid ``floor(p / voxel_m)`` (one row
+    per occupied voxel, in the order of the voxel keys)."""
+    if len(points) == 0:
+        return np.zeros((0, 3))
+    uniq, inv, cnt = np.unique(_voxel_keys(points, voxel_m), return_inverse=True,
+                               return_counts=True)
+    return np.column_stack([np.bincount(inv, weights=points[:, k], minlength=len(uniq))
+                            for k in range(3)]) / cnt[:, None]
+
+
+def merge_voxels(model: o3d.geometry.PointCloud, points: np.ndarray, normals: np.ndarray,
+                 stamp_s: float, voxel_m: float, max_weight: float) -> o3d.geometry.PointCloud:
+    """The coarse model with one capture's points fused in: per voxel of a fixed grid, the
+    weighted mean of the model's point (weight: its observation count, colour channel 1) and
+    the capture's points in it (together weight 1), normals likewise (then unit length); the
+    count grows by one per capture up to ``max_weight``; the stamp (colour channel 0) is the
+    capture's where it has points. A model point is the mean of points of its voxel, so it stays
+    in it: each voxel holds one point. Returns a new cloud."""
+    p0 = np.asarray(model.points)
+    n0 = np.asarray(model.normals) if model.has_normals() else np.zeros_like(p0)
+    c0 = np.asarray(model.colors) if model.has_colors() else np.zeros_like(p0)
+    w0 = c0[:, 1] if len(c0) else np.zeros(0)
+    k_new = _voxel_keys(points, voxel_m)
+    # the capture's own points per voxel share one observation
+    u_new, inv_new, cnt_new = np.unique(k_new, return_inverse=True, return_counts=True)
+    w_new = 1.0 / cnt_new[inv_new]
+    keys = np.concatenate([_voxel_keys(p0, voxel_m), k_new])
+    w = np.concatenate([np.maximum(w0, 1.0), w_new])
+    uniq, inv = np.unique(keys, return_inverse=True)
+    wsum = np.bincount(inv, weights=w, minlength=len(uniq))
+    pts = np.concatenate([p0, points])
+    nrm = np.concatenate([n0, normals])
+    out_p = np.column_stack([np.bincount(inv, weights=w * pts[:, k], minlength=len(uniq))
+                             for k in range(3)]) / wsum[:, None]
+    out_n = np.column_stack([np.bincount(inv, weights=w * nrm[:, k], minlength=len(uniq))
+                             for k in range(3)])
+    out_n /= np.maximum(np.linalg.norm(out_n, axis=1, keepdims=True), 1e-12)
+    seen = np.zeros(len(uniq), bool)
+    seen[inv[len(p0):]] = True
+    stamp = np.zeros(len(uniq))
+    stamp[inv[:len(p0)]] = c0[:, 0] if len(c0) else 0.0
+    stamp[seen] = float(stamp_s)
+    colors = np.column_stack([stamp, np.minimum(wsum, max_weight), np.zeros(len(uniq))])
+    out = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(out_p))
+    out.normals = o3d.utility.Vector3dVector(out_n)
+    out.colors = o3d.utility.Vector3dVector(colors)
+    return out
+
+
 class IcpMapper:
     """Dead-reckoning-seeded point-to-plane ICP localisation with a coarse and a fine model.
 
@@ -1398,8 +1487,21 @@ class IcpMapper:
             maxlen=max(config.confirm_captures, config.max_consecutive_rejections, 1))
         # (IMU attitude R_world_base, map pose) at the last accepted capture
         self._accepted_attitude: Optional[Tuple[np.ndarray, np.ndarray]] = None
+        # the IMU's yaw drift: (stamp, yaw ICP corrected from the IMU-turned prior [rad]) of
+        # accepted captures, the stamp of the first, the rate [rad/s] and the last accepted
+        # capture's stamp (see imu_yaw_drift_window_s)
+        self._yaw_corrections: Deque[Tuple[float, float]] = collections.deque()
+        self._yaw_history_from: Optional[float] = None
+        self._yaw_drift_rad_s = 0.0
+        self._accepted_stamp: Optional[float] = None
 
     # ---- public state ----------------------------------------------------------------------
+    @property
+    def imu_yaw_drift_deg_s(self) -> float:
+        """The estimated yaw drift rate of the IMU [deg/s] taken out of the prior (0 until
+        half a window of history, or when off; see ``imu_yaw_drift_window_s``)."""
+        return float(np.degrees(self._yaw_drift_rad_s))
+
     @property
     def n_captures(self) -> int:
         return int(self.counters['fused'])
@@ -1541,7 +1643,7 @@ class IcpMapper:
             if not np.all(np.isfinite(attitude)) or not np.allclose(
                     attitude @ attitude.T, np.eye(3), atol=1e-3):
                 raise ValueError('IMU attitude must be a finite rotation matrix')
-        result = self.align(src, T_odom_base, up_camera, attitude)
+        result = self.align(src, T_odom_base, up_camera, attitude, stamp_s)
         if result.accepted or c.fuse_rejected:
             self.fuse(fine, src, result.T_map_camera, result.T_map_base, stamp_s)
             result.fused = True
@@ -1549,10 +1651,12 @@ class IcpMapper:
 
     def align(self, src_camera: np.ndarray, T_odom_base: np.ndarray,
               up_camera: Optional[np.ndarray] = None,
-              attitude: Optional[np.ndarray] = None) -> MapperUpdate:
+              attitude: Optional[np.ndarray] = None,
+              stamp_s: Optional[float] = None) -> MapperUpdate:
         """ICP of camera-frame source points against the coarse model, with the guards.
 
-        Updates ``T_map_odom`` when accepted; never touches the maps.
+        Updates ``T_map_odom`` when accepted; never touches the maps. ``stamp_s`` (the
+        capture's time) lets the IMU's yaw drift be estimated and taken out of the prior.
         """
         c = self.config
         if self._last_odom is not None:
@@ -1566,6 +1670,12 @@ class IcpMapper:
             # the body's rotation since the last accepted capture, as the IMU measured it
             R_then, T_map_then = self._accepted_attitude
             T_prior[:3, :3] = T_map_then[:3, :3] @ (R_then.T @ attitude)
+        R_imu_prior = T_prior[:3, :3].copy()
+        track_yaw = imu_prior and stamp_s is not None and c.imu_yaw_drift_window_s > 0
+        if track_yaw and self._yaw_drift_rad_s and self._accepted_stamp is not None:
+            T_prior[:3, :3] = _rot_z(self._yaw_drift_rad_s * (float(stamp_s)
+                                                              - self._accepted_stamp)) \
+                @ T_prior[:3, :3]
         T_cam_prior = T_prior @ self.T_base_camera
         up = up_camera if c.use_gravity_prior else None
         if up is None and c.use_ground_plane_prior:
@@ -1727,9 +1837,35 @@ class IcpMapper:
             self.counters['degenerate_alignments'] += 1
             self.counters['directions_kept_at_prior'] += n_degenerate
         self._recent_rmse.append(rmse)
+        if track_yaw:
+            R = T_base[:3, :3] @ R_imu_prior.T
+            self._note_yaw_correction(float(stamp_s), float(np.arctan2(R[1, 0], R[0, 0])),
+                                      n_degenerate == 0)
         self._accept(T_base, T_odom_base, attitude)
+        if stamp_s is not None:
+            self._accepted_stamp = float(stamp_s)
         upd.T_map_odom = self.T_map_odom.copy()
         return upd
+
+    def _note_yaw_correction(self, stamp_s: float, yaw_rad: float, constrained: bool) -> None:
+        """Keep an accepted capture's yaw correction (from the IMU-turned prior, before the
+        drift compensation) and, when its geometry constrained every direction, re-estimate
+        the IMU's yaw drift rate: the corrections of the last window, summed, over its span.
+        (Each correction removes the IMU's drift since the previous accepted capture plus the
+        change of ICP's own yaw error, so the sum over a window is the drift in it plus the
+        difference of two ICP errors, not a sum of noise.)"""
+        c = self.config
+        if self._yaw_history_from is None:
+            self._yaw_history_from = stamp_s
+        q = self._yaw_corrections
+        q.append((stamp_s, yaw_rad))
+        while q and q[0][0] <= stamp_s - c.imu_yaw_drift_window_s:
+            q.popleft()
+        span = min(c.imu_yaw_drift_window_s, stamp_s - self._yaw_history_from)
+        if not constrained or span < 0.5 * c.imu_yaw_drift_window_s:
+            return
+        limit = np.radians(c.imu_yaw_drift_max_deg_s)
+        self._yaw_drift_rad_s = float(np.clip(sum(y for _, y in q) / span, -limit, limit))
 
     def _level_error(self, T_map_camera: np.ndarray, up: Optional[np.ndarray]) -> str:
         """The reason an alignment fails ``max_level_error_deg`` ('' when it passes or there
@@ -1841,8 +1977,14 @@ class IcpMapper:
             model_map = near_map if np.array_equal(in_icp, near) else _rows(fine_map, in_icp)
         else:
             model_map = transform_points(T_map_camera, src_camera)
-        new = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(model_map))
-        new = new.voxel_down_sample(c.coarse_voxel_m)
+        if c.coarse_fusion == 'weighted':
+            # the voxels of the model's own fixed grid (Open3D's grid starts at the cloud's
+            # corner: its voxels would straddle the model's)
+            new = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(
+                voxel_centroids(model_map, c.coarse_voxel_m)))
+        else:
+            new = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(model_map))
+            new = new.voxel_down_sample(c.coarse_voxel_m)
         if c.normal_source == 'height_grid':
             pts = np.asarray(new.points)
             nrm = cloud_height_normals(pts, c.coarse_voxel_m,
@@ -1856,14 +1998,21 @@ class IcpMapper:
             new.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(c.normal_radius_m,
                                                                       c.normal_max_nn))
             new.orient_normals_towards_camera_location(T_map_camera[:3, 3])
-        # the stamp rides in the colour channel through voxel averaging (capping keeps newest)
-        new.colors = o3d.utility.Vector3dVector(np.full((len(new.points), 3), float(stamp_s)))
-        # re-voxelise so overlapping captures do not pile up
-        model = (self._model + new).voxel_down_sample(c.coarse_voxel_m)
-        nrm = np.asarray(model.normals)
-        nrm /= np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-12)
-        model.normals = o3d.utility.Vector3dVector(nrm)
-        self._model = model
+        if c.coarse_fusion == 'weighted':
+            self._model = merge_voxels(self._model, np.asarray(new.points),
+                                       np.asarray(new.normals), float(stamp_s),
+                                       c.coarse_voxel_m, c.coarse_max_weight)
+        else:
+            # the stamp rides in the colour channel through voxel averaging (capping keeps
+            # newest); re-voxelise so overlapping captures do not pile up
+            new.colors = o3d.utility.Vector3dVector(
+                np.column_stack([np.full(len(new.points), float(stamp_s)),
+                                 np.ones(len(new.points)), np.zeros(len(new.points))]))
+            model = (self._model + new).voxel_down_sample(c.coarse_voxel_m)
+            nrm = np.asarray(model.normals)
+            nrm /= np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-12)
+            model.normals = o3d.utility.Vector3dVector(nrm)
+            self._model = model
         self._tree = None
         self._crop_model(T_map_base[:3, 3])
         self._poses.append((float(stamp_s), T_map_camera.copy()))
