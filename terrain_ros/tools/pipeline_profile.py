@@ -211,6 +211,8 @@ def _bag_baseline(reader) -> Optional[float]:
     from rclpy.serialization import deserialize_message
     from sensor_msgs.msg import CameraInfo
     conns = [c for c in reader.connections if c.topic == '/stereo/right/camera_info']
+    if not conns:       # rosbags reads every topic for connections=[]
+        return None
     for _, _, data in reader.messages(connections=conns):
         P = np.asarray(deserialize_message(bytes(data), CameraInfo).p, float).reshape(3, 4)
         if P[0, 0] > 0 and np.isfinite(P[0, 3]):
