@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
-from typing import MutableMapping, Optional
+from typing import List, MutableMapping, Optional
 
 CONFIG_DIR = Path(__file__).resolve().parent.parent / 'config'
 
@@ -33,6 +33,15 @@ CONFIG_DIR = Path(__file__).resolve().parent.parent / 'config'
 def config_path(name: str) -> Path:
     """Path of a file in the project's ``config/`` folder."""
     return CONFIG_DIR / name
+
+
+def params_files(name: str, robot: str) -> List[Path]:
+    """``config/NAME`` and after it, if present, the robot's overlay ``config/STEM.ROBOT.yaml``:
+    what the launch profiles load (``params: [NAME, "STEM.${robot}.yaml?"]``), later files
+    overriding earlier ones."""
+    base = config_path(name)
+    overlay = base.with_name(f'{base.stem}.{robot}{base.suffix}')
+    return [base, overlay] if overlay.is_file() else [base]
 
 
 def safe_env(env: Optional[MutableMapping[str, str]] = None) -> MutableMapping[str, str]:

@@ -97,7 +97,8 @@ from typing import Dict, List, Optional, Tuple
 
 import numpy as np
 
-from terrain_ros.env import CONFIG_DIR, NODE_THREAD_DEFAULTS, apply_safe_defaults
+from terrain_ros.env import (CONFIG_DIR, NODE_THREAD_DEFAULTS, apply_safe_defaults,
+                             params_files)
 from terrain_ros.tools.bag import open_reader
 from terrain_ros.tools.common import ToolError
 
@@ -288,11 +289,8 @@ class Replay:
         self.ctx = Context()
         args = ['--ros-args']
         for f in PARAM_FILES:
-            args += ['--params-file', str(CONFIG_DIR / f)]
-            # the robot's overlay, as the launch profiles load it (NODE.ROBOT.yaml?)
-            overlay = CONFIG_DIR / f.replace('.yaml', f'.{robot}.yaml')
-            if overlay.is_file():
-                args += ['--params-file', str(overlay)]
+            for path in params_files(f, robot):     # + the robot's overlay, as launched
+                args += ['--params-file', str(path)]
         rclpy.init(args=args, context=self.ctx)
         self.nodes: list = []
         try:
