@@ -1673,8 +1673,9 @@ class IcpMapper:
         R_imu_prior = T_prior[:3, :3].copy()
         track_yaw = imu_prior and stamp_s is not None and c.imu_yaw_drift_window_s > 0
         if track_yaw and self._yaw_drift_rad_s and self._accepted_stamp is not None:
-            T_prior[:3, :3] = _rot_z(self._yaw_drift_rad_s * (float(stamp_s)
-                                                              - self._accepted_stamp)) \
+            # the IMU's yaw has drifted by rate x time since the accepted capture: undo it
+            T_prior[:3, :3] = _rot_z(-self._yaw_drift_rad_s * (float(stamp_s)
+                                                               - self._accepted_stamp)) \
                 @ T_prior[:3, :3]
         T_cam_prior = T_prior @ self.T_base_camera
         up = up_camera if c.use_gravity_prior else None
@@ -1865,7 +1866,8 @@ class IcpMapper:
         if not constrained or span < 0.5 * c.imu_yaw_drift_window_s:
             return
         limit = np.radians(c.imu_yaw_drift_max_deg_s)
-        self._yaw_drift_rad_s = float(np.clip(sum(y for _, y in q) / span, -limit, limit))
+        # ICP turned the IMU's yaw back by the drift: the rate is minus the corrections'
+        self._yaw_drift_rad_s = float(np.clip(-sum(y for _, y in q) / span, -limit, limit))
 
     def _level_error(self, T_map_camera: np.ndarray, up: Optional[np.ndarray]) -> str:
         """The reason an alignment fails ``max_level_error_deg`` ('' when it passes or there

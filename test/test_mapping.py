@@ -3,6 +3,7 @@
 import dataclasses
 
 import numpy as np
+import open3d as o3d
 import pytest
 from scipy.spatial.transform import Rotation
 
@@ -911,3 +912,104 @@ def test_blend_yaw_moves_along_the_icp_valley_to_the_imu_yaw():
     np.testing.assert_array_equal(mp.blend_yaw(T_icp, T_prior, pts, nrm, 1.0), T_icp)
     with pytest.raises(ValueError, match='gain'):
         mp.blend_yaw(T_icp, T_prior, pts, nrm, 1.5)
+
+
+def test_a_voxel_keeps_the_mean_of_its_observations_up_to_the_weight_cap():
+    """merge_voxels: a voxel seen 9 times at z = 2 mm and once at 6 mm sits at their mean
+    (2.4 mm); Open3D's down-sampling of model + capture (coarse_fusion average) moves it
+    half-way to the newest capture; with a cap of 1 the newest replaces it. Every voxel keeps
+    one point, its count and the newest stamp."""
+    xy = np.stack(np.meshgrid(np.arange(10) * 0.01 + 0.005, np.arange(10) * 0.01 + 0.005,
+                              indexing='ij'), -1).reshape(-1, 2)
+    def capture(z):
+        return np.column_stack([xy, np.full(len(xy), z)])
+    up = np.tile([0.0, 0.0, 1.0], (len(xy), 1))
+    model = o3d.geometry.PointCloud()
+    for k in range(9):
+        model = mp.merge_voxels(model, capture(0.002), up, float(k), 0.01, 20.0)
+    assert len(model.points) == 100
+    np.testing.assert_allclose(np.asarray(model.colors)[:, :2], [[8.0, 9.0]] * 100)
+    merged = mp.merge_voxels(model, capture(0.006), up, 9.0, 0.01, 20.0)
+    assert len(merged.points) == 100
+    np.testing.assert_allclose(np.asarray(merged.points)[:, 2], 0.0024, atol=1e-12)
+    np.testing.assert_allclose(np.asarray(merged.colors)[:, :2], [[9.0, 10.0]] * 100)
+    np.testing.assert_allclose(np.asarray(merged.normals), up)
+    # cap 1: the stored count stays 1, so each capture moves the voxel half-way
+    one = o3d.geometry.PointCloud()
+    for k in range(9):
+        one = mp.merge_voxels(one, capture(0.002), up, float(k), 0.01, 1.0)
+    one = mp.merge_voxels(one, capture(0.006), up, 9.0, 0.01, 1.0)
+    np.testing.assert_allclose(np.asarray(one.points)[:, 2], 0.004, atol=1e-12)
+    one = mp.merge_voxels(one, capture(0.006), up, 10.0, 0.01, 1.0)
+    np.testing.assert_allclose(np.asarray(one.points)[:, 2], 0.005, atol=1e-12)
+    o3d_avg = (model + o3d.geometry.PointCloud(o3d.utility.Vector3dVector(capture(0.006)))
+               ).voxel_down_sample(0.01)
+    assert np.allclose(np.asarray(o3d_avg.points)[:, 2], 0.004)
+    # a point in a new voxel joins the model; two capture points in one voxel are one sample
+    two = np.array([[0.2012, 0.0, 0.012], [0.2018, 0.0, 0.018]])
+    grown = mp.merge_voxels(merged, two, np.tile([0.0, 0.0, 1.0], (2, 1)), 11.0, 0.01, 20.0)
+    assert len(grown.points) == 101
+    new = np.asarray(grown.points)[np.asarray(grown.points)[:, 0] > 0.15]
+    np.testing.assert_allclose(new, [[0.2015, 0.0, 0.015]])
+    assert np.asarray(grown.colors)[np.asarray(grown.points)[:, 0] > 0.15][0, 1] == 1.0
+
+
+def _drifting_imu_walk(scene, config, drift_deg_s, n=40, dt=1.0, step_m=0.01):
+    """A walk along x with perfect odometry and an IMU whose yaw drifts at drift_deg_s; the
+    mapper's updates (capture k at k * dt seconds)."""
+    m = mp.IcpMapper(config, T_BC)
+    ups = []
+    for k in range(n):
+        T = make_T(np.eye(3), [k * step_m, 0.0, 0.2])
+        imu = rpy_to_R(0.0, 0.0, np.radians(drift_deg_s * k * dt))
+        ups.append(m.update(cloud_at(scene, T), T, k * dt, attitude=imu))
+    return m, ups
+
+
+def test_the_imus_yaw_drift_is_measured_and_taken_out_of_the_prior(terrain):
+    """The IMU's yaw drifts 0.1 deg/s (a gyro bias); ICP corrects it at every capture on the
+    bumps. From half a window (15 s) of history the mapper knows the rate and turns the prior
+    back by it: the priors' yaw errors shrink from 0.1 deg (a second of drift) to a few
+    hundredths. Off (window 0): the rate stays 0 and every prior carries the second's
+    drift."""
+    _, scene = terrain
+    cfg = dataclasses.replace(CONFIG, use_imu_rotation_prior=True)
+    m, ups = _drifting_imu_walk(scene, cfg, 0.1)
+    assert all(u.accepted and u.n_degenerate == 0 for u in ups), [u.reason for u in ups]
+    assert m.imu_yaw_drift_deg_s == pytest.approx(0.1, abs=0.01)
+    prior_err = [pose_error(u.T_map_base_prior, u.T_map_base)[1] for u in ups]
+    assert np.median(prior_err[1:15]) > 0.08
+    assert np.median(prior_err[20:]) < 0.03, prior_err
+    off, ups_off = _drifting_imu_walk(scene, dataclasses.replace(cfg, imu_yaw_drift_window_s=0.0),
+                                      0.1)
+    assert off.imu_yaw_drift_deg_s == 0.0
+    assert np.median([pose_error(u.T_map_base_prior, u.T_map_base)[1]
+                      for u in ups_off[20:]]) > 0.08
+
+
+def test_the_yaw_drift_estimate_holds_while_the_view_constrains_no_yaw():
+    """The estimator alone: 5 captures/s whose ICP turned the IMU's yaw back by 0.02 deg
+    each (0.1 deg/s). Nothing before half a window (15 s); then 0.1 deg/s. While the view is
+    degenerate (ICP kept the yaw at the prior: corrections 0) the estimate is kept, where
+    the window's sum would fall to 0; the first constrained capture after 20 s of that catches
+    up the 2 deg, and the window's sum is again the rate."""
+    m = mp.IcpMapper(CONFIG, T_BC)
+    step = np.radians(-0.02)
+    t = 0.0
+    for k in range(80):
+        t = 0.2 * k
+        m._note_yaw_correction(t, step, True)
+        if t < 15.0:
+            assert m.imu_yaw_drift_deg_s == 0.0
+    # (the first capture's correction counts without its interval: 1 / 79 high)
+    assert m.imu_yaw_drift_deg_s == pytest.approx(0.1, rel=0.02)
+    for k in range(1, 101):
+        m._note_yaw_correction(t + 0.2 * k, 0.0, False)
+    assert m.imu_yaw_drift_deg_s == pytest.approx(0.1, rel=0.02)
+    t += 20.2
+    m._note_yaw_correction(t, np.radians(-2.02), True)
+    assert m.imu_yaw_drift_deg_s == pytest.approx(0.1, rel=0.05)
+    m2 = mp.IcpMapper(dataclasses.replace(CONFIG, imu_yaw_drift_max_deg_s=0.05), T_BC)
+    for k in range(100):
+        m2._note_yaw_correction(0.2 * k, step, True)
+    assert m2.imu_yaw_drift_deg_s == pytest.approx(0.05)
