@@ -42,7 +42,8 @@ from scipy.spatial.transform import Rotation, Slerp
 from terrain_perception.compiled import load_compiled
 from terrain_perception.config import param
 from terrain_perception.grid import ELEVATION, OBSERVED, VARIANCE, GridMap
-from terrain_perception.transforms import angle_between, invert, transform_points
+from terrain_perception.transforms import (angle_between, invert, rot_z, transform_points,
+                                           yaw_of)
 
 MIN = 'min'
 MAX = 'max'
@@ -1375,12 +1376,6 @@ def isolated_cells(grid: GridMap, max_count: int, min_neighbours: int,
     return out
 
 
-def _rot_z(angle_rad: float) -> np.ndarray:
-    """Rotation matrix (3x3) about z by ``angle_rad``."""
-    ca, sa = np.cos(angle_rad), np.sin(angle_rad)
-    return np.array([[ca, -sa, 0.0], [sa, ca, 0.0], [0.0, 0.0, 1.0]])
-
-
 def _voxel_keys(points: np.ndarray, voxel_m: float) -> np.ndarray:
     """One int64 per point naming its voxel of a fixed grid (cell ``floor(p / voxel_m)``; 21
     bits per axis, so +-10 km at 1 cm)."""
@@ -1674,7 +1669,7 @@ class IcpMapper:
         track_yaw = imu_prior and stamp_s is not None and c.imu_yaw_drift_window_s > 0
         if track_yaw and self._yaw_drift_rad_s and self._accepted_stamp is not None:
             # the IMU's yaw has drifted by rate x time since the accepted capture: undo it
-            T_prior[:3, :3] = _rot_z(-self._yaw_drift_rad_s * (float(stamp_s)
+            T_prior[:3, :3] = rot_z(-self._yaw_drift_rad_s * (float(stamp_s)
                                                                - self._accepted_stamp)) \
                 @ T_prior[:3, :3]
         T_cam_prior = T_prior @ self.T_base_camera
@@ -1839,8 +1834,7 @@ class IcpMapper:
             self.counters['directions_kept_at_prior'] += n_degenerate
         self._recent_rmse.append(rmse)
         if track_yaw:
-            R = T_base[:3, :3] @ R_imu_prior.T
-            self._note_yaw_correction(float(stamp_s), float(np.arctan2(R[1, 0], R[0, 0])),
+            self._note_yaw_correction(float(stamp_s), yaw_of(T_base[:3, :3] @ R_imu_prior.T),
                                       n_degenerate == 0)
         self._accept(T_base, T_odom_base, attitude)
         if stamp_s is not None:
