@@ -663,6 +663,12 @@ def remove_degenerate_motion(T_icp: np.ndarray, T_prior: np.ndarray, points: np.
 # the correspondences trading places, for the same pose to 0.1 mm)
 _STEP_TOL = 1e-4
 
+# constrained_icp's first phase ends when the mean squared residual changes by less than this
+# share between two iterations: it only measures the noise level, and on flat ground it would
+# go on sliding along the unconstrained directions (the second phase resets them) to the
+# iteration cap, a fraction of a millimetre per step, for the same residual
+_NOISE_REL_TOL = 0.01
+
 
 @dataclass
 class IcpResult:
@@ -779,6 +785,11 @@ def constrained_icp(src: np.ndarray, model: np.ndarray, model_normals: np.ndarra
        to the prior) and one Gauss-Newton step of the robust point-to-plane cost is taken
        inside them.
 
+    A phase ends when a step (and the reset before it) moves the pose less than
+    ``_STEP_TOL``, or the pose comes back to where it was two steps before (a 2-cycle of
+    correspondences trading places); the first phase also when its mean squared residual
+    changes by less than ``_NOISE_REL_TOL`` (it is only there for the noise level).
+
     Open3D's ICP instead converges with all six directions free and the unconstrained ones
     are reset afterwards; on a view of mostly flat ground it slides along them by centimetres,
     and the fit it reports (and the correspondences the residual guard used) belongs to that
@@ -811,6 +822,7 @@ def constrained_icp(src: np.ndarray, model: np.ndarray, model_normals: np.ndarra
         return _plane_matches(src, model, model_normals, tree, T_cur, c.max_correspondence_m)
 
     total = 0
+    T_matched = None              # the pose of the last match's correspondences
     noise_var = 0.0
     # phase 0 converges with the geometric threshold alone; phase 1 then also needs each kept
     # direction to carry degeneracy_noise_gain x the information that normals tilted by noise
@@ -819,11 +831,19 @@ def constrained_icp(src: np.ndarray, model: np.ndarray, model_normals: np.ndarra
     # updated per iteration, a reset along one direction raises the residual, which resets
     # the next)
     for phase in (0, 1):
+        x_before = None          # the pose two steps back (a 2-cycle's other end)
+        last_ms = None
+        settle = phase == 0 and c.degeneracy_noise_gain > 0   # phase 1 follows
         for it in range(1, c.max_iterations + 1):
             total += 1
             p, si, mi, n, r = match(T)
+            T_matched = T
             if len(si) < 6:
                 break
+            ms = float(np.mean(r * r))
+            if settle and last_ms is not None and abs(last_ms - ms) <= _NOISE_REL_TOL * ms:
+                break            # the residual (all phase 0 is for) has settled
+            last_ms = ms
             # 1. the directions the geometry constrains (about the prior's origin, scaled by L)
             d = p[si] - centre
             J = np.hstack([np.cross(d, n) / L, n])
@@ -848,19 +868,24 @@ def constrained_icp(src: np.ndarray, model: np.ndarray, model_normals: np.ndarra
                 y = np.linalg.lstsq(A, b, rcond=None)[0]
             step = Vg @ y
             moved = float(np.linalg.norm(x_proj - x))
+            x_two_back, x_before = x_before, x
             x = x_proj + step
             T = _from_motion(x, T_prior, L)
             if np.linalg.norm(step) < _STEP_TOL and moved < _STEP_TOL:
                 break
+            if x_two_back is not None and np.linalg.norm(x - x_two_back) < _STEP_TOL:
+                break        # a 2-cycle: two correspondence sets trade places
         if c.degeneracy_noise_gain <= 0 or phase == 1:
             break
-        p, si, mi, n, r = match(T)
+        if T is not T_matched:
+            p, si, mi, n, r = match(T)
         if len(si) < 6:
             break
         noise_var = float(np.mean(r * r)) / c.normal_radius_m ** 2
     limit = max(c.degeneracy_threshold, c.degeneracy_noise_gain * noise_var)
     it = total
-    p, si, mi, n, r = match(T)
+    if T is not T_matched:
+        p, si, mi, n, r = match(T)
     corr = np.stack([si, mi], axis=1) if len(si) else np.zeros((0, 2), np.int64)
     rmse = float(np.sqrt(np.mean(r * r))) if len(si) else float('inf')
     return IcpResult(T, corr, len(si) / max(n_src, 1), rmse, eig, n_deg, limit, it)
