@@ -481,12 +481,17 @@ def stereo_noise(cloud, fb, sigma_d, rng):
     return cloud * ((z + dz) / z)[..., None]
 
 
+def flat_scene():
+    """A level plane: only z, roll and pitch are observable on it."""
+    g = GridMap.empty(0.005, (-0.5, -1.0), (500, 400))
+    g[ELEVATION] = np.zeros(g.shape)
+    return rc.HeightFieldScene(g)
+
+
 def test_flat_ground_keeps_the_prior_in_x_y_yaw():
     """On a plane only z, roll and pitch are observable: ICP must correct those and leave x, y
     and yaw at the prior, even with stereo-like depth noise tilting the model normals."""
-    g = GridMap.empty(0.005, (-0.5, -1.0), (500, 400))
-    g[ELEVATION] = np.zeros(g.shape)
-    scene = rc.HeightFieldScene(g)
+    scene = flat_scene()
     rng = np.random.default_rng(4)
     fb = CAM.fx * 0.03
     cfg = dataclasses.replace(CONFIG, disparity_sigma_px=0.15)
@@ -525,9 +530,7 @@ def test_noisy_flat_views_converge_in_few_iterations():
     noise level) ends when that residual settles and either phase ends on a 2-cycle: at most
     25 iterations a capture, and the same outcome as the flat-ground test above: the
     observable height to the truth, x and y at the prior."""
-    g = GridMap.empty(0.005, (-0.5, -1.0), (500, 400))
-    g[ELEVATION] = np.zeros(g.shape)
-    scene = rc.HeightFieldScene(g)
+    scene = flat_scene()
     rng = np.random.default_rng(4)
     fb = CAM.fx * 0.03
     m = mp.IcpMapper(dataclasses.replace(CONFIG, disparity_sigma_px=0.15), T_BC, fb)
@@ -556,9 +559,7 @@ def test_relocalisation_on_flat_ground_keeps_the_prior():
     """After a disturbance the mapper also aligns from starts 5 and 10 cm around the prior
     (multi_start_icp). On a plane every shift fits as well (to stereo noise), so it must keep
     the prior's ICP: x and y stay at the prior."""
-    g = GridMap.empty(0.005, (-0.5, -1.0), (500, 400))
-    g[ELEVATION] = np.zeros(g.shape)
-    scene = rc.HeightFieldScene(g)
+    scene = flat_scene()
     rng = np.random.default_rng(5)
     fb = CAM.fx * 0.03
     m = mp.IcpMapper(dataclasses.replace(CONFIG, disparity_sigma_px=0.15), T_BC, fb)
