@@ -34,7 +34,7 @@ def test_suite_compares_the_config_with_candidate_parameters(tmp_path, monkeypat
     # ratios are baseline / candidate (the tool itself is stubbed: a bag is too large here).
     calls = []
 
-    def fake(bag, params, slip=None):
+    def fake(bag, params, slip=None, code=None):
         calls.append(list(params))
         worse = not params
         return {'captures': 10, 'accepted': 10, 'yaw_err_deg_rms': 2.0 if worse else 1.0,
@@ -53,6 +53,43 @@ def test_suite_compares_the_config_with_candidate_parameters(tmp_path, monkeypat
     assert set(out['bags'][str(tmp_path)]) == {'default', 'candidate'}
     Args.param = ['degeneracy_noise_gain=3']
     with pytest.raises(ValueError, match='NAME:=VALUE'):
+        icp_replay.run(Args())
+
+
+def test_suite_compares_a_git_revision_with_the_current_tree(tmp_path, monkeypatch):
+    """--against REV: the baseline runs the tool from a worktree of that revision (its code
+    and config; removed afterwards), the current tree from here; a revision git does not
+    know is one clear error."""
+    import subprocess as sp
+    from terrain_perception.bench.pipeline import REPO
+    head = sp.run(['git', '-C', str(REPO), 'rev-parse', 'HEAD'], capture_output=True,
+                  text=True, check=True).stdout.strip()
+    seen = {}
+
+    def fake(bag, params, slip=None, code=None):
+        if code is not None:
+            got = sp.run(['git', '-C', str(code), 'rev-parse', 'HEAD'], capture_output=True,
+                         text=True, check=True).stdout.strip()
+            seen['tree'] = (code, got, (code / 'config' / 'icp_mapper.yaml').is_file())
+        return {'captures': 10, 'accepted': 10, 'yaw_err_deg_max': 3.0,
+                'yaw_err_deg_final': 1.0, 'pos_err_m_max': 0.05, 'pos_err_m_final': 0.01,
+                'yaw_err_deg_rms': 1.5 if code is not None else 1.0,
+                'pos_err_m_rms': 0.02 if code is not None else 0.01}
+    monkeypatch.setattr(icp_replay, '_run_tool', fake)
+
+    class Args:
+        bag = [tmp_path]
+        against = 'HEAD'
+    out = icp_replay.run(Args())
+    tree, commit, has_config = seen['tree']
+    assert commit == head and has_config
+    assert not tree.exists()
+    assert out['against'] == {'rev': 'HEAD', 'commit': head}
+    assert set(out['bags'][str(tmp_path)]) == {'HEAD', 'current'}
+    assert out['yaw_rms_ratio'][str(tmp_path)] == pytest.approx(1.5)
+    assert out['pos_rms_ratio'][str(tmp_path)] == pytest.approx(2.0)
+    Args.against = 'no-such-revision-here'
+    with pytest.raises(ValueError, match='no-such-revision-here'):
         icp_replay.run(Args())
 
 

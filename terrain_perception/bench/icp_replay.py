@@ -21,6 +21,12 @@ the ratios are baseline / candidate of the yaw and position error RMS: a way to 
 parameter on recorded runs in seconds instead of closed-loop trials in minutes (the replay is
 open loop: the recorded dead reckoning does not react to the candidate's poses).
 
+With ``--against REV`` the two variants are instead ``REV`` (the baseline: the tool run from a
+temporary worktree of git revision ``REV`` of this repository, its code and its config files)
+and ``current`` (this tree), and the ratios are baseline / current of the yaw and position error
+RMS: a code change's effect on localisation, rerunnable on the same recorded runs. ``--param``
+then applies to both.
+
 Per variant it also prints the final fine map against the bag's true terrain: height RMSE on
 observed cells and the cells more than 5 cm above / below it (phantoms / pits).
 
@@ -31,18 +37,23 @@ tool's ``recovered_m`` (2 cm; ``captures_to_recover``): the mapper's recovery fr
 IMU reported, on real recorded clouds.
 
 JSON: ``bags`` (path -> variant -> the tool's figures), ``yaw_rms_ratio`` (path -> baseline /
-default or candidate) and, with ``--param``, ``pos_rms_ratio`` and ``params``.
+default or candidate) and, with ``--param``, ``pos_rms_ratio`` and ``params``; with
+``--against``, ``pos_rms_ratio``, ``against`` (``rev``, ``commit``).
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
+import os
 import subprocess
 import sys
 import tempfile
 from pathlib import Path
-from typing import Dict
+from typing import Dict, Optional
+
+from .pipeline import revision_tree
 
 TOOL = 'terrain_ros.tools.icp_replay'
 VARIANTS = {'odometry_prior': ['use_imu_rotation_prior:=false'], 'imu_rotation_prior': []}
@@ -54,20 +65,29 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument('--param', action='append', default=[], metavar='NAME:=VALUE',
                    help='compare the config file (baseline) with it plus these mapper '
                         'parameters (repeatable) instead of the odometry / IMU rotation priors')
+    p.add_argument('--against', metavar='REV', default=None,
+                   help='compare the code of this git revision (a commit before a change; run '
+                        'from a temporary worktree) with the current tree')
     p.add_argument('--slip', default=None, metavar='T:DX,DY',
                    help='inject a slip dead reckoning missed: from bag time T [s] on, move the '
                         'odometry by (-DX, -DY) [m] in every replay')
 
 
-def _run_tool(bag: Path, params, slip=None) -> dict:
+def _run_tool(bag: Path, params, slip=None, code: Optional[Path] = None) -> dict:
+    """The replay tool's figures on ``bag`` (with ``code``: the package tree there)."""
+    env = None
+    if code is not None:
+        env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(code)] + [p for p in (
+            os.environ.get('PYTHONPATH') or '').split(os.pathsep) if p]))
     with tempfile.TemporaryDirectory() as tmp:
         out = Path(tmp) / 'replay.json'
-        cmd = [sys.executable, '-m', TOOL, str(bag), '--json', str(out)]
+        cmd = [sys.executable, '-m', TOOL, str(Path(bag).resolve()), '--json', str(out)]
         for p in params:
             cmd += ['--param', p]
         if slip is not None:
             cmd += ['--slip', slip]
-        res = subprocess.run(cmd, capture_output=True, text=True)
+        res = subprocess.run(cmd, capture_output=True, text=True, env=env,
+                             cwd=str(code) if code is not None else None)
         if res.returncode != 0 or not out.is_file():
             raise ValueError(f'{TOOL} on {bag} failed: {res.stderr.strip()[-500:]}')
         return json.loads(out.read_text())
@@ -78,7 +98,23 @@ def run(args) -> Dict:
     for text in params:
         if ':=' not in text or not text.split(':=', 1)[0]:
             raise ValueError(f'--param {text!r} is not of the form NAME:=VALUE')
-    variants = {'default': [], 'candidate': params} if params else VARIANTS
+    against = getattr(args, 'against', None)
+    with contextlib.ExitStack() as stack:
+        code: Dict[str, Optional[Path]] = {}
+        if against:
+            tree, commit = stack.enter_context(revision_tree(against))
+            variants = {against: params, 'current': params}
+            code = {against: tree}
+        else:
+            variants = {'default': [], 'candidate': params} if params else VARIANTS
+        out = _replay(args, variants, code)
+        if against:
+            out['against'] = {'rev': against, 'commit': commit}
+    return out
+
+
+def _replay(args, variants: Dict[str, list], code: Dict[str, Optional[Path]]) -> Dict:
+    params = list(getattr(args, 'param', None) or [])
     base_name, ours_name = list(variants)
     bags, ratios, pos_ratios = {}, {}, {}
     print(f'{"bag / variant":52s} {"accepted":>10s} {"yaw RMS":>8s} {"max":>6s} '
@@ -89,7 +125,7 @@ def run(args) -> Dict:
             raise FileNotFoundError(f'bag directory {bag} does not exist')
         per = {}
         for name, extra in variants.items():
-            f = _run_tool(bag, extra, getattr(args, 'slip', None))
+            f = _run_tool(bag, extra, getattr(args, 'slip', None), code.get(name))
             per[name] = f
             print(f'{str(bag)[-30:] + " " + name:52s} {f["accepted"]:>4d}/{f["captures"]:<5d} '
                   f'{f["yaw_err_deg_rms"]:8.2f} {f["yaw_err_deg_max"]:6.2f} '
@@ -111,8 +147,10 @@ def run(args) -> Dict:
               f'position {pos_ratios[str(bag)]:.2f}x', flush=True)
         bags[str(bag)] = per
     out = {'bags': bags, 'yaw_rms_ratio': ratios}
+    if params or code:
+        out['pos_rms_ratio'] = pos_ratios
     if params:
-        out.update(pos_rms_ratio=pos_ratios, params=params)
+        out['params'] = params
     if getattr(args, 'slip', None):
         out['slip'] = args.slip
     return out

@@ -37,6 +37,7 @@ and ``against_ratio`` (stage -> the revision's median / the current tree's, and 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import shutil
@@ -44,7 +45,7 @@ import subprocess
 import sys
 import tempfile
 from pathlib import Path
-from typing import Dict, Optional
+from typing import Dict, Iterator, Optional, Tuple
 
 # The pools terrain_ros.env.node_env sets to one thread (NODE_THREAD_DEFAULTS; the core may not
 # import terrain_ros, test_pipeline_profile checks that the two lists agree).
@@ -149,20 +150,27 @@ def _git(*args: str) -> str:
     return proc.stdout.strip()
 
 
-def profile_revision(bag: Path, captures: int, rev: str) -> dict:
-    """:func:`profile` (node env) of the code of git revision ``rev``, checked out into a
-    temporary worktree of this repository (removed afterwards)."""
+@contextlib.contextmanager
+def revision_tree(rev: str) -> Iterator[Tuple[Path, str]]:
+    """``(tree, commit)``: git revision ``rev`` of this repository checked out into a temporary
+    worktree (its code and its config files), removed on exit."""
     commit = _git('rev-parse', '--verify', f'{rev}^{{commit}}')
-    tmp = Path(tempfile.mkdtemp(prefix='bench-pipeline-rev-'))
+    tmp = Path(tempfile.mkdtemp(prefix='bench-rev-'))
     tree = tmp / 'tree'
     try:
         _git('worktree', 'add', '--detach', str(tree), commit)
-        r = profile(bag, captures, 'node_env', code=tree,
-                    title=f'node env, the code of {rev} ({commit[:10]}), same bag')
+        yield tree, commit
     finally:
         subprocess.run(['git', '-C', str(REPO), 'worktree', 'remove', '--force', str(tree)],
                        capture_output=True)
         shutil.rmtree(tmp, ignore_errors=True)
+
+
+def profile_revision(bag: Path, captures: int, rev: str) -> dict:
+    """:func:`profile` (node env) of the code of git revision ``rev`` (:func:`revision_tree`)."""
+    with revision_tree(rev) as (tree, commit):
+        r = profile(bag, captures, 'node_env', code=tree,
+                    title=f'node env, the code of {rev} ({commit[:10]}), same bag')
     r['commit'] = commit
     return r
 
