@@ -250,6 +250,12 @@ class IcpMapperNode(Node):
         return R
 
     def _on_cloud(self, msg: PointCloud2) -> None:
+        self._align_and_publish(msg)
+        # the coarse model's part of the fusion, after the capture's pose and fine map went
+        # out: the fill node and the planner work on them meanwhile (IcpMapper.fuse)
+        self.mapper.finish_model()
+
+    def _align_and_publish(self, msg: PointCloud2) -> None:
         t = stamp_to_sec(msg.header.stamp)
         try:
             cloud = cloud_to_xyz(msg)
@@ -269,7 +275,8 @@ class IcpMapperNode(Node):
             if self._up_base is not None:
                 up_cam = self.T_base_camera[:3, :3].T @ self._up_base
             res = self.mapper.update(cloud, T_odom_base, t, up_camera=up_cam,
-                                     prepared=prepared, attitude=self._attitude_at(t))
+                                     prepared=prepared, attitude=self._attitude_at(t),
+                                     defer_model=True)
         except ValueError as exc:
             self.counters.bump(_cloud_key(str(exc)), str(exc))
             return

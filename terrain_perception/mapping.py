@@ -1511,6 +1511,8 @@ class IcpMapper:
                                   config.cell_outlier_gate_m)
         self._fine_anchored = False
         self._model = o3d.geometry.PointCloud()
+        # the coarse model's part of the last fusion, if deferred (see fuse)
+        self._pending_model: Optional[Tuple[np.ndarray, np.ndarray, np.ndarray, float]] = None
         self._tree: Optional[cKDTree] = None      # of the model's points (constrained ICP)
         self._poses: Deque[Tuple[float, np.ndarray]] = collections.deque(
             maxlen=config.max_capture_poses)
@@ -1555,11 +1557,13 @@ class IcpMapper:
 
     def coarse_points(self) -> np.ndarray:
         """Coarse model points ``(N, 3)`` float64 in ``map`` [m]."""
+        self.finish_model(build_tree=False)
         return np.asarray(self._model.points).copy()
 
     def coarse_normals(self) -> np.ndarray:
         """Unit normals ``(N, 3)`` of :meth:`coarse_points` (what the ICP's point-to-plane
         residuals use)."""
+        self.finish_model(build_tree=False)
         return np.asarray(self._model.normals).copy()
 
     def capture_poses(self) -> Tuple[np.ndarray, np.ndarray]:
@@ -1590,6 +1594,7 @@ class IcpMapper:
     @property
     def memory_bytes(self) -> int:
         """Bytes held by the maps (fine statistics + coarse points/normals + poses)."""
+        self.finish_model(build_tree=False)
         m = self._model
         return (self.fine.nbytes + 8 * 3 * (len(m.points) + len(m.normals) + len(m.colors))
                 + len(self._poses) * 8 * 17)
@@ -1649,7 +1654,8 @@ class IcpMapper:
                coarse_camera: Optional[np.ndarray] = None,
                up_camera: Optional[np.ndarray] = None,
                prepared: Optional[Tuple[np.ndarray, np.ndarray]] = None,
-               attitude: Optional[np.ndarray] = None) -> MapperUpdate:
+               attitude: Optional[np.ndarray] = None,
+               defer_model: bool = False) -> MapperUpdate:
         """Localise and fuse one capture.
 
         Args:
@@ -1663,6 +1669,8 @@ class IcpMapper:
                 already (saves the second pass).
             attitude: optional IMU attitude ``R_world_base`` (3x3) at the capture's stamp
                 (``use_imu_rotation_prior``).
+            defer_model: leave the coarse model's part of the fusion for
+                :meth:`finish_model` (see :meth:`fuse`).
 
         Returns:
             :class:`MapperUpdate`. Raises ValueError for bad input; then nothing changes.
@@ -1687,7 +1695,8 @@ class IcpMapper:
                 raise ValueError('IMU attitude must be a finite rotation matrix')
         result = self.align(src, T_odom_base, up_camera, attitude, stamp_s)
         if result.accepted or c.fuse_rejected:
-            self.fuse(fine, src, result.T_map_camera, result.T_map_base, stamp_s)
+            self.fuse(fine, src, result.T_map_camera, result.T_map_base, stamp_s,
+                      defer_model=defer_model)
             result.fused = True
         return result
 
@@ -1697,9 +1706,11 @@ class IcpMapper:
               stamp_s: Optional[float] = None) -> MapperUpdate:
         """ICP of camera-frame source points against the coarse model, with the guards.
 
-        Updates ``T_map_odom`` when accepted; never touches the maps. ``stamp_s`` (the
+        Updates ``T_map_odom`` when accepted; never touches the maps (a coarse-model fusion
+        left pending by ``defer_model`` is done first). ``stamp_s`` (the
         capture's time) lets the IMU's yaw drift be estimated and taken out of the prior.
         """
+        self.finish_model()
         c = self.config
         if self._last_odom is not None:
             self._walked_since_accept_m += float(
@@ -2004,9 +2015,17 @@ class IcpMapper:
                                    else (attitude.copy(), T_map_base.copy()))
 
     def fuse(self, fine_camera: np.ndarray, src_camera: np.ndarray, T_map_camera: np.ndarray,
-             T_map_base: np.ndarray, stamp_s: float) -> None:
-        """Add a capture at a known camera pose to both models (moving them if needed)."""
+             T_map_base: np.ndarray, stamp_s: float, defer_model: bool = False) -> None:
+        """Add a capture at a known camera pose to both models (moving them if needed).
+
+        With ``defer_model`` the fine map, the capture poses and the stamp are updated here and
+        the coarse model's part (its voxels, normals, merge, crop and KD-tree: 10-20 ms late
+        in a walk) waits for :meth:`finish_model`, which the next alignment or a read of the
+        coarse model calls if nobody did: the ICP mapper node publishes the capture's pose
+        and fine map first, so the fill and the planner need not wait for the model only the
+        next capture uses. Either way the maps come out the same."""
         c = self.config
+        self.finish_model(build_tree=False)
         self._recenter(T_map_base[:3, 3])
         # the capture in the map frame, once (rows are selected below, not re-transformed)
         fine_map = transform_points(T_map_camera, fine_camera)
@@ -2040,6 +2059,27 @@ class IcpMapper:
             model_map = near_map if np.array_equal(in_icp, near) else _rows(fine_map, in_icp)
         else:
             model_map = transform_points(T_map_camera, src_camera)
+        self._poses.append((float(stamp_s), T_map_camera.copy()))
+        self._last_stamp = max(self._last_stamp, float(stamp_s))
+        self.counters['fused'] += 1
+        self._pending_model = (model_map, T_map_camera, T_map_base, float(stamp_s))
+        if not defer_model:
+            self.finish_model(build_tree=False)
+
+    def finish_model(self, build_tree: bool = True) -> None:
+        """Do the coarse model's part of a fusion :meth:`fuse` deferred (nothing if none is
+        pending) and, with ``build_tree``, build the model's KD-tree the next alignment
+        searches."""
+        if self._pending_model is not None:
+            model_map, T_map_camera, T_map_base, stamp_s = self._pending_model
+            self._pending_model = None
+            self._fuse_model(model_map, T_map_camera, T_map_base, stamp_s)
+        if build_tree and self._tree is None and len(self._model.points):
+            self._tree = cKDTree(np.asarray(self._model.points))
+
+    def _fuse_model(self, model_map: np.ndarray, T_map_camera: np.ndarray,
+                    T_map_base: np.ndarray, stamp_s: float) -> None:
+        c = self.config
         if c.coarse_fusion == 'weighted':
             # the voxels of the model's own fixed grid (Open3D's grid starts at the cloud's
             # corner: its voxels would straddle the model's)
@@ -2078,9 +2118,6 @@ class IcpMapper:
             self._model = model
         self._tree = None
         self._crop_model(T_map_base[:3, 3])
-        self._poses.append((float(stamp_s), T_map_camera.copy()))
-        self._last_stamp = max(self._last_stamp, float(stamp_s))
-        self.counters['fused'] += 1
 
     def _crop_model(self, center: np.ndarray) -> None:
         c = self.config

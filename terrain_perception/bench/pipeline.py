@@ -59,7 +59,7 @@ VARIANT_TITLES = {'default_pools': 'baseline: the libraries\' default thread poo
                   'node_env': 'node env: OMP/OPENBLAS/MKL_NUM_THREADS=1, '
                               'OPENCV_FOR_THREADS_NUM=1 (terrain-launch)',
                   'numpy_ik': 'node env with the numpy leg IK (TERRAIN_IK_NUMBA=0)'}
-STAGES = ('stereo', 'icp', 'fill', 'plan_map', 'patches', 'plan_goal')
+STAGES = ('stereo', 'icp', 'icp_model', 'fill', 'plan_map', 'patches', 'plan_goal')
 DEMO_RUN_DIR = Path('runs') / 'bench' / 'pipeline-demo'
 DEFAULT_DOMAIN = '47'
 TOOL = 'terrain_ros.tools.pipeline_profile'
@@ -195,8 +195,9 @@ def run(args) -> dict:
     for v, r in res.items():
         variants[v] = {
             'threads': r['threads'], 'compiled_ik': r.get('compiled_ik'),
-            'stage_median_ms': {s: r['stages'][s]['median_ms'] for s in STAGES},
-            'stage_p90_ms': {s: r['stages'][s]['p90_ms'] for s in STAGES},
+            # (a stage the code of an --against revision did not have: None)
+            'stage_median_ms': {s: r['stages'].get(s, {}).get('median_ms') for s in STAGES},
+            'stage_p90_ms': {s: r['stages'].get(s, {}).get('p90_ms') for s in STAGES},
             'cpu_ms_per_capture': r['cpu_ms_per_capture'],
             'chain_cpu_ms_median_sum': r['chain_cpu_ms_median_sum'],
             'chain_cpu_ms_per_capture_median': r['chain_cpu_ms_per_capture_median'],

@@ -31,7 +31,10 @@ message the stage worked on):
 
     stereo     the image callback that completed a pair, which processes it (no rate limit
                here): disparity, clouds, ground plane
-    icp        icp_mapper's /stereo/points callback: self filter, ICP, fusion, map publishing
+    icp        icp_mapper's /stereo/points callback up to publishing: self filter, ICP, the
+               fine map's fusion, map publishing
+    icp_model  the rest of that callback, after publishing: the coarse model's fusion and
+               KD-tree (only the next capture's ICP needs them; off the chain)
     fill       terrain_fill's update: whichever callback (/map/fine, /map/capture_poses, or the
                emulated ``process_period_s`` timer) actually ran it
     plan_map   footstep_planner's /map/filled callback: map conversion, cost, replan
@@ -109,11 +112,11 @@ PARAM_FILES = ('stereo_node.yaml', 'icp_mapper.yaml', 'terrain_fill.yaml',
                'footstep_planner.yaml')
 
 CHAIN = ('stereo', 'icp', 'fill', 'plan_map')
-STAGES = CHAIN + ('patches', 'plan_goal')
+STAGES = CHAIN + ('icp_model', 'patches', 'plan_goal')
 SMALL = ('stereo_input', 'camera_info', 'icp_odom', 'icp_imu', 'icp_joints', 'icp_coarse',
          'fill_input', 'fill_stance', 'plan_imu', 'plan_pose', 'plan_stance', 'patches_in')
 # Stages whose calls belong to one capture (the stamp of the message they work on).
-PER_CAPTURE = ('stereo', 'icp', 'fill', 'plan_map', 'patches')
+PER_CAPTURE = ('stereo', 'icp', 'icp_model', 'fill', 'plan_map', 'patches')
 
 # Topics without which a stage would silently do nothing (or something else).
 REQUIRED_TOPICS = {
@@ -487,7 +490,9 @@ def run_profile(bag: Path, reader, robot: Tuple[str, str], library_height: Tuple
             elif topic == '/stereo/right/camera_info':
                 R.simple('camera_info', lambda m: S._on_info('right', m), raw, types[topic])
             elif topic == '/stereo/points':        # each node deserialises its own copy
-                R.simple('icp', M._on_cloud, raw, types[topic], peek_stamp(raw))
+                R.simple('icp', M._align_and_publish, raw, types[topic], peek_stamp(raw))
+                R.call(('icp_model',), M.mapper.finish_model,
+                       lambda: ('icp_model', peek_stamp(raw)))
                 if P.node_cfg.find_patches:
                     # the node either finds the patches now or keeps the cloud for its pose
                     R.call(('patches', 'patches_in'),
