@@ -249,12 +249,6 @@ class MapperConfig:
         'keeps the yaw at the prior (FROG-I on the stones, seed 146: 70 s of flat view past '
         'the stones, the pose\'s yaw drifted 2.5 deg with the IMU\'s 0.045 deg/s); '
         'used from half a window of history; 0 = off', 0.0, 1e6)
-    imu_yaw_drift_min_yaw_share: float = param(
-        0.15, 'the yaw drift estimate moves only at captures whose yaw alone (its marginal '
-        'information, with the other directions free) carries at least this share of the '
-        'information a direction needs (rocks-6cm seed 130: 0.3-0.7 on the rocks; 0.04 at two '
-        'captures near the flat exit that passed the degeneracy test 0.7-0.9 deg off and set '
-        'the rate to a fifth of the true one for the rest of the walk)', 0.0, 1e6)
     imu_yaw_drift_max_deg_s: float = param(0.5, 'largest yaw drift rate [deg/s] the estimate '
                                            'may take (a larger one is clipped)', 0.0, 180.0)
     use_gravity_prior: bool = param(False, 'level the prior with a measured up vector (IMU)')
@@ -688,7 +682,6 @@ class IcpResult:
     n_degenerate: int             # directions kept at the prior
     information_limit: float      # the eigenvalue a direction needed
     iterations: int
-    yaw_information: float = float('nan')   # the yaw's marginal information (yaw_information)
 
 
 def _tukey_weights(r: np.ndarray, k: float) -> np.ndarray:
@@ -728,18 +721,6 @@ def fake_information(d: np.ndarray, w: np.ndarray, L: float) -> np.ndarray:
         j = np.hstack([np.cross(d, e) / L, np.broadcast_to(e, d.shape)])
         F += (j * w[:, None]).T @ j
     return F
-
-
-def yaw_information(H: np.ndarray) -> float:
-    """The yaw's marginal information ``1 / (H^-1)_yaw`` in the normalised information ``H``
-    of :func:`_information` (map z rotation): what the fit knows of the yaw with the other
-    five directions free, 0 when ``H`` is singular. Every eigenvalue may reach the limit while
-    the yaw alone does not: a view whose yaw trades against a sideways shift."""
-    try:
-        v = float(np.linalg.inv(H)[2, 2])
-    except np.linalg.LinAlgError:
-        return 0.0
-    return 1.0 / v if np.isfinite(v) and v > 0 else 0.0
 
 
 def _observed_directions(H: np.ndarray, d: np.ndarray, w: np.ndarray, L: float,
@@ -835,7 +816,6 @@ def constrained_icp(src: np.ndarray, model: np.ndarray, model_normals: np.ndarra
     limit = float('nan')
     n_deg = 0
     it = 0
-    H = None
     dw = np.ones(n_src) if depth_w is None else np.asarray(depth_w, dtype=np.float64)
 
     def match(T_cur):
@@ -908,8 +888,7 @@ def constrained_icp(src: np.ndarray, model: np.ndarray, model_normals: np.ndarra
         p, si, mi, n, r = match(T)
     corr = np.stack([si, mi], axis=1) if len(si) else np.zeros((0, 2), np.int64)
     rmse = float(np.sqrt(np.mean(r * r))) if len(si) else float('inf')
-    return IcpResult(T, corr, len(si) / max(n_src, 1), rmse, eig, n_deg, limit, it,
-                     yaw_information(H) if H is not None else 0.0)
+    return IcpResult(T, corr, len(si) / max(n_src, 1), rmse, eig, n_deg, limit, it)
 
 
 def relocalisation_starts(radius_m: float, directions: int) -> np.ndarray:
@@ -1760,7 +1739,7 @@ class IcpMapper:
         degeneracy = c.degeneracy_threshold > 0 or c.degeneracy_noise_gain > 0
         n_degenerate = 0
         multi_start = -1
-        min_info = info_limit = yaw_info = float('nan')
+        min_info = info_limit = float('nan')
         if c.icp_solver == 'constrained' and c.icp_method == 'point_to_plane':
             src_np = np.asarray(src.points)
             model_pts = np.asarray(self._model.points)
@@ -1786,7 +1765,6 @@ class IcpMapper:
             if degeneracy:
                 n_degenerate = res.n_degenerate
                 min_info, info_limit = float(res.eigenvalues[0]), res.information_limit
-                yaw_info = res.yaw_information
             if blend and len(corr) >= 6:
                 src_pts = src_np[corr[:, 0]]
                 T_cam = blend_yaw(T_cam, T_cam_prior, transform_points(T_cam, src_pts),
@@ -1821,9 +1799,6 @@ class IcpMapper:
                     T_cam, T_cam_prior, transform_points(T_cam, src_pts), normals, info_limit,
                     weights)
                 min_info = float(eig[0])
-                if track_yaw:
-                    yaw_info = yaw_information(_information(
-                        T_cam_prior, transform_points(T_cam, src_pts), normals, weights)[0])
         rmse = self._plane_rmse(src, T_cam, corr)
         T_base = T_cam @ invert(self.T_base_camera)
         corr_m = float(np.linalg.norm(T_base[:3, 3] - T_prior[:3, 3]))
@@ -1896,13 +1871,8 @@ class IcpMapper:
             self.counters['directions_kept_at_prior'] += n_degenerate
         self._recent_rmse.append(rmse)
         if track_yaw:
-            # the rate moves at captures that know their yaw: every direction constrained
-            # and the yaw alone a share of the information a direction needs (without
-            # degeneracy tests, every capture)
-            yaw_known = n_degenerate == 0 and not (
-                yaw_info < c.imu_yaw_drift_min_yaw_share * info_limit)
             self._note_yaw_correction(float(stamp_s), yaw_of(T_base[:3, :3] @ R_imu_prior.T),
-                                      yaw_known)
+                                      n_degenerate == 0)
         self._accept(T_base, T_odom_base, attitude)
         if stamp_s is not None:
             self._accepted_stamp = float(stamp_s)
@@ -1911,17 +1881,19 @@ class IcpMapper:
 
     def _note_yaw_correction(self, stamp_s: float, yaw_rad: float, known: bool) -> None:
         """Add an accepted capture's yaw correction (from the IMU-turned prior, before the
-        drift compensation) and, at a capture that knows its yaw (``known``), re-estimate the
+        drift compensation) and, at a capture that knows its yaw (``known``: its geometry
+        constrained every direction), re-estimate the
         IMU's yaw drift rate: the corrections since an earlier such capture, summed, over the
         time between the two. That capture is the oldest within the window (or, with none
         there, the newest before it); the rate is used from half a window.
 
         Each correction removes the IMU's drift since the previous accepted capture plus the
         change of ICP's own yaw error, so the sum between two captures is the drift plus the
-        difference of their two ICP errors, not a sum of noise; both ends are captures whose
-        yaw was observed, so one weakly observed capture at either end cannot set the rate
-        (rocks-6cm seed 130, one capture 0.9 deg off at the window's end: 0.009 instead of
-        0.047 deg/s, and a yaw error growing to 2.5 deg over the flat exit)."""
+        difference of their two ICP errors, not a sum of noise. Both ends are captures whose
+        yaw was observed: a window that starts wherever 30 s ago falls may start just after a
+        capture whose yaw error the next one took back, and then holds the return alone
+        (rocks-6cm seed 130's replay: the rate froze at 0.009 instead of ~0.045 deg/s over
+        the flat exit, and the yaw error grew to 2.5 deg)."""
         c = self.config
         self._yaw_sum += yaw_rad
         if not known:
