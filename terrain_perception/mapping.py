@@ -242,10 +242,11 @@ class MapperConfig:
         'kept yaw (a constant-gain filter of the two yaw sources, see blend_yaw)', 0.0, 1.0)
     imu_yaw_drift_window_s: float = param(
         30.0, 'with the IMU rotation prior: the IMU\'s yaw drift rate (a gyro bias; it has no '
-        'absolute yaw) is the sum of the yaw corrections ICP made in this many seconds of '
-        'captures, divided by their span, and the prior\'s yaw is turned by the rate times '
-        'the time since the last accepted capture. The estimate moves only at captures whose '
-        'geometry constrained every direction, so it holds while the view is flat and ICP '
+        'absolute yaw) is the sum of the yaw corrections ICP made over about this many '
+        'seconds of captures, divided by their span, and the prior\'s yaw is turned by the '
+        'rate times the time since the last accepted capture. The estimate moves only at '
+        'captures whose geometry constrained every direction, and the span starts at one '
+        '(see _note_yaw_correction), so it holds while the view is flat and ICP '
         'keeps the yaw at the prior (FROG-I on the stones, seed 146: 70 s of flat view past '
         'the stones, the pose\'s yaw drifted 2.5 deg with the IMU\'s 0.045 deg/s); '
         'used from half a window of history; 0 = off', 0.0, 1e6)
