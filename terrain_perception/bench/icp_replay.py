@@ -46,14 +46,13 @@ from __future__ import annotations
 import argparse
 import contextlib
 import json
-import os
 import subprocess
 import sys
 import tempfile
 from pathlib import Path
 from typing import Dict, Optional
 
-from .pipeline import revision_tree
+from .pipeline import code_env, revision_tree
 
 TOOL = 'terrain_ros.tools.icp_replay'
 VARIANTS = {'odometry_prior': ['use_imu_rotation_prior:=false'], 'imu_rotation_prior': []}
@@ -75,10 +74,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def _run_tool(bag: Path, params, slip=None, code: Optional[Path] = None) -> dict:
     """The replay tool's figures on ``bag`` (with ``code``: the package tree there)."""
-    env = None
-    if code is not None:
-        env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(code)] + [p for p in (
-            os.environ.get('PYTHONPATH') or '').split(os.pathsep) if p]))
+    env = code_env(code) if code is not None else None
     with tempfile.TemporaryDirectory() as tmp:
         out = Path(tmp) / 'replay.json'
         cmd = [sys.executable, '-m', TOOL, str(Path(bag).resolve()), '--json', str(out)]

@@ -124,8 +124,7 @@ def profile(bag: Path, captures: int, variant: str, code: Optional[Path] = None,
     the package tree there instead of the installed one); its JSON figures."""
     env = _env(variant)
     if code is not None:
-        env['PYTHONPATH'] = os.pathsep.join([str(code)] + [p for p in (
-            env.get('PYTHONPATH') or '').split(os.pathsep) if p])
+        env = code_env(code, env)
     with tempfile.TemporaryDirectory(prefix='bench-pipeline-') as tmp:
         out = Path(tmp) / 'profile.json'
         cmd = [sys.executable, '-m', TOOL, str(Path(bag).resolve()), '--captures',
@@ -148,6 +147,14 @@ def _git(*args: str) -> str:
     if proc.returncode != 0:
         raise ValueError(f'git {" ".join(args)}: {proc.stderr.strip() or proc.stdout.strip()}')
     return proc.stdout.strip()
+
+
+def code_env(code: Path, env: Optional[Dict[str, str]] = None) -> Dict[str, str]:
+    """``env`` (default: this process's) with the package tree ``code`` first on PYTHONPATH."""
+    env = dict(os.environ if env is None else env)
+    env['PYTHONPATH'] = os.pathsep.join([str(code)] + [p for p in (
+        env.get('PYTHONPATH') or '').split(os.pathsep) if p])
+    return env
 
 
 @contextlib.contextmanager
