@@ -165,3 +165,98 @@ def test_closed_loop_trials_pass_parameter_overrides_to_every_trial(tmp_path, ca
     rc = runner.main(['closed-loop', '--param', 'touchdown_verify_s:=0.0', '--out', str(out)])
     assert rc == 2 and 'NODE:NAME:=VALUE' in capsys.readouterr().err
     assert not out.exists()
+
+
+def _fake_demo(calls, revision):
+    """A stand-in for the trials' terrain-demo: writes the summary.json the demo would, with
+    the command it was given, and the outcome 'crossed' for even seeds."""
+    import json as _json
+    from pathlib import Path
+
+    class Done:
+        returncode, stdout, stderr = 0, '', ''
+
+    def run(cmd, **_kw):
+        calls.append(cmd)
+        run_dir = Path(cmd[cmd.index('--run-dir') + 1])
+        run_dir.mkdir(parents=True, exist_ok=True)
+        seed = int(cmd[cmd.index('--seed') + 1])
+        crossed = seed % 2 == 0
+        (run_dir / 'summary.json').write_text(_json.dumps({
+            'command': ' '.join(['terrain-demo'] + [str(a) for a in cmd[1:]]),
+            'code_revision': revision, 'crossed': crossed, 'falls': 0 if crossed else 1,
+            'distance_m': 1.5, 'sim_time_s': 100.0, 'wall_time_s': 500.0,
+            'mean_speed_mps': 0.015, 'end_reason': 'crossed' if crossed else 'fell',
+            'complete_graph': True, 'capture_to_plan_ms_all': [150.0 + seed]}))
+        return Done()
+    return run
+
+
+def test_closed_loop_resume_keeps_finished_trials_of_the_same_code(tmp_path, monkeypatch,
+                                                                    capsys):
+    import json as _json
+    from terrain_perception.bench import closed_loop, pipeline, runner
+    calls = []
+    monkeypatch.setattr(pipeline, 'code_revision', lambda *a: 'a' * 40)
+    monkeypatch.setattr(closed_loop.subprocess, 'run', _fake_demo(calls, 'a' * 40))
+    out = tmp_path / 'full'
+    base = ['closed-loop', '--courses', 'rocks-6cm', '--variants', 'full', '--seeds', '2',
+            '--first-seed', '10', '--front-gap', '0.3', '--out', str(out)]
+    assert runner.main(base + ['--json', str(tmp_path / 'a.json')]) == 0
+    assert len(calls) == 2
+    first = _json.loads((tmp_path / 'a.json').read_text())
+    assert first['success']['rocks-6cm']['full'] == 0.5
+    # Without --resume the finished trials are not run over.
+    capsys.readouterr()
+    assert runner.main(base) == 2
+    assert '--resume' in capsys.readouterr().err and len(calls) == 2
+    # --resume keeps both: nothing runs, the same table and latencies.
+    assert runner.main(base + ['--resume', '--json', str(tmp_path / 'b.json')]) == 0
+    assert len(calls) == 2
+    again = _json.loads((tmp_path / 'b.json').read_text())
+    assert again['success'] == first['success']
+    assert again['latency_ms_median'] == first['latency_ms_median'] == 160.5
+    assert [t['resumed'] for t in again['trials']] == [True, True]
+    # A trial of another commit is run again, the old one moved aside, not lost.
+    seed11 = out / 'rocks-6cm' / 'full' / 'seed11' / 'summary.json'
+    s = _json.loads(seed11.read_text())
+    seed11.write_text(_json.dumps({**s, 'code_revision': 'b' * 40}))
+    assert runner.main(base + ['--resume', '--json', str(tmp_path / 'c.json')]) == 0
+    assert len(calls) == 3 and '--seed' in calls[-1] and calls[-1][calls[-1].index('--seed')
+                                                                   + 1] == '11'
+    moved = list((out / 'rocks-6cm' / 'full').glob('seed11.replaced-*/summary.json'))
+    assert len(moved) == 1 and _json.loads(moved[0].read_text())['code_revision'] == 'b' * 40
+    c = _json.loads((tmp_path / 'c.json').read_text())
+    assert 'another' not in c['trials'][1]['replaced_because']
+    assert 'bbbbbbbbbb' in c['trials'][1]['replaced_because']
+    # any-code keeps a trial of another commit and says so; an interrupted trial is rerun.
+    s = _json.loads(seed11.read_text())
+    seed11.write_text(_json.dumps({**s, 'code_revision': 'c' * 40}))
+    seed10 = out / 'rocks-6cm' / 'full' / 'seed10' / 'summary.json'
+    s = _json.loads(seed10.read_text())
+    seed10.write_text(_json.dumps({**s, 'end_reason': 'interrupted (SIGINT)'}))
+    capsys.readouterr()
+    assert runner.main(base + ['--resume', 'any-code', '--json', str(tmp_path / 'd.json')]) == 0
+    assert len(calls) == 4 and calls[-1][calls[-1].index('--seed') + 1] == '10'
+    d = _json.loads((tmp_path / 'd.json').read_text())
+    assert d['code_revisions'] == ['a' * 40, 'c' * 40]
+    assert [t['resumed'] for t in d['trials']] == [False, True]
+    assert 'kept from an earlier run of code cccccccccc' in capsys.readouterr().out
+
+
+def test_code_revision_names_the_commit_and_a_changed_tree(tmp_path):
+    import subprocess
+    from terrain_perception.bench.pipeline import code_revision
+    assert code_revision(tmp_path) is None                     # not a git checkout
+    git = ['git', '-C', str(tmp_path), '-c', 'user.name=t', '-c', 'user.email=t@t']
+    subprocess.run(git + ['init', '-q'], check=True)
+    (tmp_path / 'a.py').write_text('x = 1\n')
+    subprocess.run(git + ['add', 'a.py'], check=True)
+    subprocess.run(git + ['commit', '-q', '-m', 'a'], check=True)
+    head = subprocess.run(git + ['rev-parse', 'HEAD'], capture_output=True, text=True,
+                          check=True).stdout.strip()
+    assert code_revision(tmp_path) == head
+    (tmp_path / 'b.py').write_text('untracked files do not count\n')
+    assert code_revision(tmp_path) == head
+    (tmp_path / 'a.py').write_text('x = 2\n')
+    assert code_revision(tmp_path) == head + '+dirty'

@@ -835,6 +835,9 @@ def test_replay_rebuilds_the_same_map(graph, tmp_path):
     import json
     s = json.loads((run_dir / 'summary.json').read_text())
     assert s['map_rmse_observed_m'] is not None, (s['missing'], out[-2000:])
+    # The report names the code it ran (a git checkout here: the commit, +dirty if changed).
+    from terrain_perception.bench.pipeline import code_revision
+    assert s['code_revision'] == code_revision() and s['command'].startswith('terrain-demo ')
     # Compare the replayed map (rebuilt by stereo + ICP from the same images) cell by cell.
     rep = _last_map_from_run(run_dir)
     assert rep is not None, 'the replay produced no /map/fine'

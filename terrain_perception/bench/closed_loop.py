@@ -19,7 +19,17 @@ run's ``summary.json``; it imports nothing from ROS.
 
 JSON: ``success`` (course -> variant -> rate), ``falls`` (course -> variant -> total),
 ``speed_mps`` (course -> variant -> mean over trials that moved), ``latency_ms_median``,
-``latency_ms_p95`` (full variant), ``trials`` (every trial's outcome and run directory).
+``latency_ms_p95`` (full variant), ``trials`` (every trial's outcome, run directory and code
+revision), ``code_revisions``.
+
+A full run (3 courses x 3 variants x 10 seeds) takes about a day of wall time on a 2-core
+machine, so it can be run in pieces: ``--resume`` with the same ``--out`` keeps every trial
+whose run directory already holds the ``summary.json`` of the same ``terrain-demo`` command,
+run from the same commit (``code_revision``, clean tree), and runs the rest. A trial stopped
+before its end (interrupted, or without a summary) is run again, and a finished trial the run
+does not keep is moved aside to ``seed<S>.replaced-<time>``, never overwritten. ``--resume
+any-code`` also keeps trials of other commits; the table then says how many, and
+``code_revisions`` lists them. Without ``--resume`` a finished trial in ``--out`` is an error.
 """
 
 from __future__ import annotations
@@ -31,6 +41,7 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+from typing import Optional
 
 import numpy as np
 
@@ -70,6 +81,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help='record every trial\'s topics to its run directory (to replay or trace '
                         'a fall afterwards; the recorder shares the cores: capture-to-plan '
                         '~60 ms slower, see the latency suite)')
+    p.add_argument('--resume', nargs='?', const='same-code', default=None,
+                   choices=('same-code', 'any-code'),
+                   help='keep the trials already finished in --out with the same terrain-demo '
+                        'command (and, unless "any-code", the same clean commit of the code) '
+                        'and run the others: a long run in pieces')
 
 
 def _start_x(course: str, robot: str, front_gap) -> 'float | None':
@@ -98,24 +114,79 @@ def trial_command(args, course: str, robot: str, variant: str, seed: int,
     return cmd
 
 
-def _trial(args, course: str, robot: str, variant: str, seed: int, out: Path) -> dict:
+def _same_command(summary_command: str, cmd: list) -> bool:
+    """Whether a run's recorded ``command`` (``terrain-demo ARGS``, as the demo writes it) is
+    ``cmd`` (whose first element is the demo's path, which may differ between venvs)."""
+    return summary_command.split()[1:] == [str(a) for a in cmd[1:]]
+
+
+def finished_trial(run_dir: Path, cmd: list, revision: Optional[str],
+                   resume: Optional[str]) -> 'tuple[Optional[dict], str]':
+    """``(summary, why)``: the summary of the trial already run in ``run_dir`` if ``--resume``
+    keeps it (same command, a run that ended by itself and, for ``same-code``, the clean commit
+    ``revision``); else None and why not (``''``: nothing there to keep or replace)."""
+    f = run_dir / 'summary.json'
+    if not f.is_file():
+        return None, ''
+    try:
+        s = json.loads(f.read_text())
+    except (OSError, ValueError) as e:
+        return None, f'its summary.json cannot be read ({e})'
+    if not _same_command(str(s.get('command', '')), cmd):
+        return None, f'it ran another command ({s.get("command")!r})'
+    if str(s.get('end_reason', '')).startswith('interrupted'):
+        return None, f'it was {s.get("end_reason")}'
+    rev = s.get('code_revision')
+    if resume != 'any-code':
+        if not rev or rev.endswith('+dirty'):
+            return None, f'its code revision is {rev or "unknown"}'
+        if rev != revision:
+            return None, f'it ran the code of {rev[:10]}, this is {str(revision)[:10]}'
+    return s, ''
+
+
+def _set_aside(run_dir: Path) -> Path:
+    """Move a finished trial's run directory out of the way (never delete results)."""
+    dest = run_dir.with_name(run_dir.name + time.strftime('.replaced-%Y%m%d-%H%M%S'))
+    run_dir.rename(dest)
+    return dest
+
+
+def _trial(args, course: str, robot: str, variant: str, seed: int, out: Path,
+           revision: Optional[str] = None) -> dict:
     run_dir = out / course / variant / f'seed{seed}'
     cmd = trial_command(args, course, robot, variant, seed, run_dir)
     start_x = _start_x(course, robot, args.front_gap)
-    t0 = time.monotonic()
-    proc = subprocess.run(cmd, capture_output=True, text=True, env=dict(os.environ),
-                          timeout=args.timeout + 300)
-    wall = time.monotonic() - t0
-    summary_file = run_dir / 'summary.json'
     row = {'course': course, 'robot': robot, 'variant': variant, 'seed': seed,
            'start_x': None if start_x is None else round(start_x, 3),
-           'run_dir': str(run_dir), 'wall_s': round(wall, 1), 'exit_code': proc.returncode}
-    if not summary_file.is_file():
-        tail = (proc.stdout + proc.stderr).strip().splitlines()[-3:]
-        row.update(ok=False, error='no summary.json: ' + ' | '.join(tail))
-        return row
-    s = json.loads(summary_file.read_text())
-    row.update(ok=True, crossed=bool(s.get('crossed')), falls=s.get('falls'),
+           'run_dir': str(run_dir)}
+    resume = getattr(args, 'resume', None)
+    kept, why = finished_trial(run_dir, cmd, revision, resume)
+    if kept is not None:
+        s = kept
+        row.update(resumed=True, wall_s=s.get('wall_time_s'), exit_code=None)
+    else:
+        if (run_dir / 'summary.json').is_file():
+            if resume is None:
+                raise ValueError(
+                    f'{run_dir} already holds a finished trial; pass --resume to keep it (or '
+                    f'run it again if it does not match) or choose another --out')
+            row['replaced'] = str(_set_aside(run_dir))
+            row['replaced_because'] = why
+        t0 = time.monotonic()
+        proc = subprocess.run(cmd, capture_output=True, text=True, env=dict(os.environ),
+                              timeout=args.timeout + 300)
+        row.update(resumed=False, wall_s=round(time.monotonic() - t0, 1),
+                   exit_code=proc.returncode)
+        summary_file = run_dir / 'summary.json'
+        if not summary_file.is_file():
+            tail = (proc.stdout + proc.stderr).strip().splitlines()[-3:]
+            row.update(ok=False, error='no summary.json: ' + ' | '.join(tail),
+                       code_revision=revision)
+            return row
+        s = json.loads(summary_file.read_text())
+    row.update(ok=True, code_revision=s.get('code_revision'),
+               crossed=bool(s.get('crossed')), falls=s.get('falls'),
                distance_m=s.get('distance_m'), sim_time_s=s.get('sim_time_s'),
                mean_speed_mps=s.get('mean_speed_mps'), end_reason=s.get('end_reason'),
                complete_graph=s.get('complete_graph'),
@@ -138,18 +209,37 @@ def run(args) -> dict:
                              f'(e.g. walking_controller:touchdown_verify_s:=0.0)')
     out = args.out or Path('runs') / time.strftime('bench-%Y%m%d-%H%M%S')
     out.mkdir(parents=True, exist_ok=True)
+    if getattr(args, 'resume', None) is None:
+        done = [str(out / c / v / f'seed{s}') for c in args.courses for v in args.variants
+                for s in range(args.first_seed, args.first_seed + args.seeds)
+                if (out / c / v / f'seed{s}' / 'summary.json').is_file()]
+        if done:
+            raise ValueError(f'{out} already holds {len(done)} finished trial(s) ({done[0]}, '
+                             '...): pass --resume to keep them (trials that do not match are '
+                             'moved aside and run again) or choose another --out')
+    from terrain_perception.bench.pipeline import code_revision
+    revision = code_revision()
     trials = []
     for course in args.courses:
         for variant in args.variants:
             for seed in range(args.first_seed, args.first_seed + args.seeds):
-                row = _trial(args, course, COURSES[course], variant, seed, out)
+                row = _trial(args, course, COURSES[course], variant, seed, out, revision)
                 trials.append(row)
+                wall = row.get('wall_s')
+                wall = '?' if wall is None else f'{wall:.0f}'
+                kept = ('; kept from an earlier run'
+                        + ('' if row.get('code_revision') == revision else
+                           f' of code {str(row.get("code_revision"))[:10]}')
+                        if row.get('resumed') else '')
                 print(f'  {course:12s} {variant:7s} seed {seed:4d}: '
                       + (f'{"crossed" if row.get("crossed") else "NOT crossed":11s} '
                          f'falls {row.get("falls")} dist {row.get("distance_m")} m '
-                         f'({row.get("end_reason")}; {row["wall_s"]:.0f} s wall'
+                         f'({row.get("end_reason")}; {wall} s wall{kept}'
                          f'{"" if row.get("complete_graph") else "; INCOMPLETE GRAPH"})'
                          if row['ok'] else f'FAILED TO RUN: {row["error"]}'), flush=True)
+                if row.get('replaced'):
+                    print(f'      an earlier trial was moved to {row["replaced"]}: '
+                          f'{row["replaced_because"]}', flush=True)
                 for text in row.get('fall_analysis') or []:
                     print(f'      {text}', flush=True)
     success, falls, speed = {}, {}, {}
@@ -182,11 +272,19 @@ def run(args) -> dict:
               'plans')
     else:
         print('capture-to-plan latency (full): not measured (no trial of the full system)')
+    revisions = sorted({str(r.get('code_revision')) for r in trials})
+    n_kept = sum(1 for r in trials if r.get('resumed'))
+    if n_kept:
+        print(f'{n_kept} of {len(trials)} trials kept from earlier runs (--resume)')
+    if len(revisions) > 1:
+        print(f'the trials ran {len(revisions)} code revisions: {", ".join(revisions)}')
     for r in trials:
         r.pop('latencies_ms', None)
     return {'success': success, 'falls': falls, 'speed_mps': speed,
             'latency_ms_median': med, 'latency_ms_p95': p95, 'latency_samples': int(lat.size),
+            'code_revision': revision, 'code_revisions': revisions,
             'trials': trials, 'settings': {'seeds': args.seeds, 'first_seed': args.first_seed,
+                                           'resume': getattr(args, 'resume', None),
                                            'max_sim_time_s': args.max_sim_time,
                                            'image_scale': args.image_scale,
                                            'front_gap_m': args.front_gap,

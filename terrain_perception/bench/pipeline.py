@@ -149,6 +149,24 @@ def _git(*args: str) -> str:
     return proc.stdout.strip()
 
 
+def code_revision(repo: Path = REPO) -> Optional[str]:
+    """The commit the code under ``repo`` is checked out at, with ``+dirty`` when tracked files
+    differ from it (their results cannot be traced to a commit); None outside a git checkout
+    (an installed package)."""
+    def git(*args: str) -> Optional[str]:
+        try:
+            proc = subprocess.run(['git', '-C', str(repo), *args], capture_output=True,
+                                  text=True, timeout=30)
+        except (OSError, subprocess.TimeoutExpired):
+            return None
+        return proc.stdout.strip() if proc.returncode == 0 else None
+    commit = git('rev-parse', '--verify', 'HEAD')
+    if not commit:
+        return None
+    dirty = git('status', '--porcelain', '--untracked-files=no')
+    return commit + ('+dirty' if dirty is None or dirty else '')
+
+
 def code_env(code: Path, env: Optional[Dict[str, str]] = None) -> Dict[str, str]:
     """``env`` (default: this process's) with the package tree ``code`` first on PYTHONPATH."""
     env = dict(os.environ if env is None else env)

@@ -863,6 +863,8 @@ def run(args) -> int:
     summary['bag'] = str(run_dir / 'bag') if recorder is not None else None
     summary['bag_closed_cleanly'] = (bag_code == 0) if recorder is not None else None
     summary['command'] = ' '.join([PROG] + sys.argv[1:])
+    from terrain_perception.bench.pipeline import code_revision
+    summary['code_revision'] = code_revision(REPO_DIR)
     import json
     (run_dir / 'summary.json').write_text(json.dumps(summary, indent=2, default=str))
     print(format_summary(summary), flush=True)
