@@ -145,6 +145,21 @@ class RobotModel:
         return StereoCamera(self.camera, self.baseline_m)
 
     @property
+    def nearest_ground_seen_m(self) -> float:
+        """How far ahead of the base origin the camera's view of level ground begins, with the
+        body level at its standing height: where the bottom image row's centre ray meets the
+        ground [m]. Ground between the front feet and this line is never seen from the
+        stance (the view moves on with the robot): FROG-I sees nothing of the 0.52 m ahead
+        of its front feet, LittleDog nothing of 0.13 m."""
+        cam = self.camera
+        ray = self.T_base_camera[:3, :3] @ np.array([0.0, (cam.height - 1 - cam.cy) / cam.fy,
+                                                     1.0])
+        origin = self.T_base_camera[:3, 3] + np.array([0.0, 0.0, self.standing_height_m])
+        if ray[2] >= 0.0:
+            return float('inf')                 # the bottom row looks at or above the horizon
+        return float(origin[0] - origin[2] / ray[2] * ray[0])
+
+    @property
     def joint_limits(self) -> np.ndarray:
         """``(4, 3, 2)`` [lower, upper] per leg and joint [rad]."""
         return np.stack([self.joint_lower, self.joint_upper], axis=-1).reshape(4, 3, 2)

@@ -94,3 +94,41 @@ def test_model_arrays_are_read_only():
     with pytest.raises(ValueError):
         m.hip_offsets[0, 0] = 1.0
     assert LEG_NAMES == m.leg_names
+
+
+@pytest.mark.parametrize('name', ['littledog', 'frog'])
+def test_nearest_ground_seen_is_where_the_image_ends(name):
+    """Level ground just beyond ``nearest_ground_seen_m`` projects into the image's bottom row,
+    ground 1 cm nearer below the image: the band the robot never sees from its stance."""
+    m = load_robot_model(name)
+    near = m.nearest_ground_seen_m
+    T_world_base = np.eye(4)
+    T_world_base[2, 3] = m.standing_height_m
+    T_cam_world = np.linalg.inv(T_world_base @ m.T_base_camera)
+
+    def row(x):
+        p = T_cam_world @ np.array([x, 0.0, 0.0, 1.0])
+        return m.camera.fy * p[1] / p[2] + m.camera.cy
+
+    assert row(near) == pytest.approx(m.camera.height - 1, abs=1e-6)
+    assert row(near + 0.01) < m.camera.height - 1 < row(near - 0.01)
+    front = float(m.nominal_feet[:, 0].max())
+    blind = {'littledog': 0.133, 'frog': 0.520}[name]
+    assert near - front == pytest.approx(blind, abs=0.002)
+
+
+def test_closed_loop_trials_start_with_the_rough_section_in_view():
+    """A bench trial's front gap is widened to the robot's blind band (plus a margin), so no
+    rough cell lies where no capture can see it; LittleDog's 0.3 m needs nothing."""
+    from terrain_perception.bench.closed_loop import VIEW_MARGIN_M, _start_x, effective_gap
+    from terrain_perception.terrain import COURSE_CLASSES
+    for robot, course in (('littledog', 'rocks-6cm'), ('frog', 'stones-15cm')):
+        m = load_robot_model(robot)
+        start = _start_x(course, robot, 0.3)
+        first_seen = start + m.nearest_ground_seen_m
+        assert first_seen <= COURSE_CLASSES[course].approach_m - VIEW_MARGIN_M + 1e-9
+        gap = COURSE_CLASSES[course].approach_m - start - m.nominal_feet[:, 0].max()
+        assert gap == pytest.approx(effective_gap(robot, 0.3))
+    assert effective_gap('littledog', 0.3) == 0.3
+    assert effective_gap('frog', 0.3) == pytest.approx(0.57)
+    assert effective_gap('frog', 0.8) == 0.8
