@@ -199,7 +199,7 @@ def test_closed_loop_resume_keeps_finished_trials_of_the_same_code(tmp_path, mon
     calls = []
     monkeypatch.setattr(pipeline, 'code_revision', lambda *a: 'a' * 40)
     monkeypatch.setattr(closed_loop.subprocess, 'run', _fake_demo(calls, 'a' * 40))
-    out = tmp_path / 'full'
+    out = tmp_path / 'full table'          # a space in the path, as a user's may have
     base = ['closed-loop', '--courses', 'rocks-6cm', '--variants', 'full', '--seeds', '2',
             '--first-seed', '10', '--front-gap', '0.3', '--out', str(out)]
     assert runner.main(base + ['--json', str(tmp_path / 'a.json')]) == 0

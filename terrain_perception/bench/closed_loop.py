@@ -137,7 +137,7 @@ def trial_command(args, course: str, robot: str, variant: str, seed: int,
 def _same_command(summary_command: str, cmd: list) -> bool:
     """Whether a run's recorded ``command`` (``terrain-demo ARGS``, as the demo writes it) is
     ``cmd`` (whose first element is the demo's path, which may differ between venvs)."""
-    return summary_command.split()[1:] == [str(a) for a in cmd[1:]]
+    return summary_command.partition(' ')[2] == ' '.join(str(a) for a in cmd[1:])
 
 
 def finished_trial(run_dir: Path, cmd: list, revision: Optional[str],
