@@ -188,11 +188,7 @@ def _trial(args, course: str, robot: str, variant: str, seed: int, out: Path,
         s = kept
         row.update(resumed=True, wall_s=s.get('wall_time_s'), exit_code=None)
     else:
-        if (run_dir / 'summary.json').is_file():
-            if resume is None:
-                raise ValueError(
-                    f'{run_dir} already holds a finished trial; pass --resume to keep it (or '
-                    f'run it again if it does not match) or choose another --out')
+        if (run_dir / 'summary.json').is_file():       # only with --resume (run checks)
             row['replaced'] = str(_set_aside(run_dir))
             row['replaced_because'] = why
         t0 = time.monotonic()
