@@ -1884,8 +1884,9 @@ class IcpMapper:
         """Add an accepted capture's yaw correction (from the IMU-turned prior, before the
         drift compensation) and, at a capture that knows its yaw (``known``: its geometry
         constrained every direction), re-estimate the IMU's yaw drift rate: the corrections
-        since an earlier such capture, summed, over the time between the two. That capture is the oldest within the window (or, with none
-        there, the newest before it); the rate is used from half a window.
+        since an earlier such capture, summed, over the time between the two. That capture is
+        the oldest within the window (or, with none there, the newest before it); the rate is
+        used from half a window.
 
         Each correction removes the IMU's drift since the previous accepted capture plus the
         change of ICP's own yaw error, so the sum between two captures is the drift plus the

@@ -142,8 +142,9 @@ def profile(bag: Path, captures: int, variant: str, code: Optional[Path] = None,
     return result
 
 
-def _git(*args: str) -> str:
-    proc = subprocess.run(['git', '-C', str(REPO), *args], capture_output=True, text=True)
+def _git(*args: str, repo: Path = REPO) -> str:
+    proc = subprocess.run(['git', '-C', str(repo), *args], capture_output=True, text=True,
+                          timeout=30)
     if proc.returncode != 0:
         raise ValueError(f'git {" ".join(args)}: {proc.stderr.strip() or proc.stdout.strip()}')
     return proc.stdout.strip()
@@ -153,18 +154,12 @@ def code_revision(repo: Path = REPO) -> Optional[str]:
     """The commit the code under ``repo`` is checked out at, with ``+dirty`` when tracked files
     differ from it (their results cannot be traced to a commit); None outside a git checkout
     (an installed package)."""
-    def git(*args: str) -> Optional[str]:
-        try:
-            proc = subprocess.run(['git', '-C', str(repo), *args], capture_output=True,
-                                  text=True, timeout=30)
-        except (OSError, subprocess.TimeoutExpired):
-            return None
-        return proc.stdout.strip() if proc.returncode == 0 else None
-    commit = git('rev-parse', '--verify', 'HEAD')
-    if not commit:
+    try:
+        commit = _git('rev-parse', '--verify', 'HEAD', repo=repo)
+        dirty = _git('status', '--porcelain', '--untracked-files=no', repo=repo)
+    except (ValueError, OSError, subprocess.TimeoutExpired):
         return None
-    dirty = git('status', '--porcelain', '--untracked-files=no')
-    return commit + ('+dirty' if dirty is None or dirty else '')
+    return commit + ('+dirty' if dirty else '') if commit else None
 
 
 def code_env(code: Path, env: Optional[Dict[str, str]] = None) -> Dict[str, str]:
