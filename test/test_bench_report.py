@@ -173,10 +173,7 @@ def _fake_demo(calls, revision):
     import json as _json
     from pathlib import Path
 
-    class Done:
-        returncode, stdout, stderr = 0, '', ''
-
-    def run(cmd, **_kw):
+    def run(cmd, _timeout_s, _stop):
         calls.append(cmd)
         run_dir = Path(cmd[cmd.index('--run-dir') + 1])
         run_dir.mkdir(parents=True, exist_ok=True)
@@ -188,8 +185,140 @@ def _fake_demo(calls, revision):
             'distance_m': 1.5, 'sim_time_s': 100.0, 'wall_time_s': 500.0,
             'mean_speed_mps': 0.015, 'end_reason': 'crossed' if crossed else 'fell',
             'complete_graph': True, 'capture_to_plan_ms_all': [150.0 + seed]}))
-        return Done()
+        return 0, ''
     return run
+
+
+# A stand-in terrain-demo as a real process: it writes the summary at once, except that odd
+# seeds wait (up to a minute) while the file $FAKE_DEMO_HOLD exists; SIGINT or SIGTERM ends it
+# with the interrupted summary the demo writes. It notes its pid and process group, and the
+# signal it got.
+_DEMO_SCRIPT = """
+import json, os, signal, sys, time
+from pathlib import Path
+argv = sys.argv
+run_dir = Path(argv[argv.index('--run-dir') + 1])
+seed = int(argv[argv.index('--seed') + 1])
+run_dir.mkdir(parents=True, exist_ok=True)
+got = []
+for sig in (signal.SIGINT, signal.SIGTERM):
+    signal.signal(sig, lambda n, _f: got.append(signal.Signals(n).name))
+(run_dir / 'started').write_text(json.dumps([os.getpid(), os.getpgid(0)]))
+hold = Path(os.environ.get('FAKE_DEMO_HOLD', '/nonexistent'))
+t0 = time.monotonic()
+while not got and seed % 2 and hold.exists() and time.monotonic() - t0 < 60.0:
+    time.sleep(0.02)
+end = 'interrupted (%s)' % got[0] if got else 'crossed'
+(run_dir / 'summary.json').write_text(json.dumps({
+    'command': ' '.join(['terrain-demo'] + argv[1:]), 'code_revision': 'a' * 40,
+    'crossed': not got, 'falls': 0, 'distance_m': 1.5, 'sim_time_s': 12.0,
+    'wall_time_s': 1.0, 'mean_speed_mps': 0.1, 'end_reason': end, 'complete_graph': True,
+    'capture_to_plan_ms_all': [150.0 + seed], 'signals': got}))
+"""
+
+
+def _demo_program(tmp_path):
+    import stat
+    import sys
+    prog = tmp_path / 'terrain-demo'
+    prog.write_text(f'#!{sys.executable}\n{_DEMO_SCRIPT}')
+    prog.chmod(prog.stat().st_mode | stat.S_IXUSR)
+    return str(prog)
+
+
+def _wait_for(path, timeout_s=20.0):
+    import time
+    t0 = time.monotonic()
+    while not path.exists():
+        assert time.monotonic() - t0 < timeout_s, f'{path} never appeared'
+        time.sleep(0.02)
+
+
+def test_closed_loop_stopped_by_sigterm_keeps_the_finished_trials(tmp_path, monkeypatch,
+                                                                   capsys):
+    import json as _json
+    import os
+    import signal
+    import threading
+    from terrain_perception.bench import closed_loop, pipeline, runner
+    monkeypatch.setattr(pipeline, 'code_revision', lambda *a: 'a' * 40)
+    monkeypatch.setattr(closed_loop, 'demo_program', lambda: _demo_program(tmp_path))
+    (tmp_path / 'hold').touch()
+    monkeypatch.setenv('FAKE_DEMO_HOLD', str(tmp_path / 'hold'))
+    out = tmp_path / 'table'
+    cell = out / 'rocks-6cm' / 'full'
+    base = ['closed-loop', '--courses', 'rocks-6cm', '--variants', 'full', '--seeds', '3',
+            '--first-seed', '10', '--front-gap', '0.3', '--out', str(out)]
+
+    def stop_seed11():
+        _wait_for(cell / 'seed11' / 'started')
+        os.kill(os.getpid(), signal.SIGTERM)
+    killer = threading.Thread(target=stop_seed11, daemon=True)
+    killer.start()
+    before = signal.getsignal(signal.SIGTERM)
+    assert runner.main(base + ['--json', str(tmp_path / 'a.json')]) == 130
+    killer.join(timeout=5)
+    assert signal.getsignal(signal.SIGTERM) is before          # the suite's handler is gone
+    a = _json.loads((tmp_path / 'a.json').read_text())
+    assert a['stopped'] == 'SIGTERM'
+    assert (a['trials_planned'], a['trials_finished']) == (3, 1)
+    # The table is the finished trial's: the interrupted one is not counted a failure.
+    assert a['success']['rocks-6cm']['full'] == 1.0 and a['latency_ms_median'] == 160.0
+    assert [(t['seed'], bool(t.get('interrupted'))) for t in a['trials']] == [(10, False),
+                                                                             (11, True)]
+    # The demo got one SIGINT, forwarded by the suite, in its own process group.
+    s11 = _json.loads((cell / 'seed11' / 'summary.json').read_text())
+    assert s11['signals'] == ['SIGINT'] and s11['end_reason'] == 'interrupted (SIGINT)'
+    pid, pgid = _json.loads((cell / 'seed11' / 'started').read_text())
+    assert pgid == pid != os.getpgid(0)
+    assert not (cell / 'seed12').exists()                      # no trial after the stop
+    printed = capsys.readouterr().out
+    assert 'INTERRUPTED (interrupted (SIGINT)' in printed and '1 of 3 trials finished' in printed
+    # --resume keeps seed 10 and runs 11 (its interrupted run moved aside) and 12.
+    (tmp_path / 'hold').unlink()
+    assert runner.main(base + ['--resume', '--json', str(tmp_path / 'b.json')]) == 0
+    b = _json.loads((tmp_path / 'b.json').read_text())
+    assert b['stopped'] is None and b['trials_finished'] == 3
+    assert [t['resumed'] for t in b['trials']] == [True, False, False]
+    assert 'interrupted (SIGINT)' in b['trials'][1]['replaced_because']
+    assert len(list(cell.glob('seed11.replaced-*/summary.json'))) == 1
+
+
+def test_closed_loop_trial_stops_gracefully_when_the_suite_is_killed(tmp_path):
+    import json as _json
+    import os
+    import signal
+    import subprocess
+    import sys
+    out = tmp_path / 'table'
+    (tmp_path / 'hold').touch()
+    code = ('import sys; from terrain_perception.bench import closed_loop, runner; '
+            f'closed_loop.demo_program = lambda: {_demo_program(tmp_path)!r}; '
+            f'sys.exit(runner.main(["closed-loop", "--courses", "rocks-6cm", "--variants", '
+            f'"full", "--seeds", "1", "--first-seed", "11", "--out", {str(out)!r}]))')
+    suite = subprocess.Popen([sys.executable, '-c', code], stdout=subprocess.DEVNULL,
+                             stderr=subprocess.DEVNULL,
+                             env={**os.environ, 'FAKE_DEMO_HOLD': str(tmp_path / 'hold')})
+    seed = out / 'rocks-6cm' / 'full' / 'seed11'
+    try:
+        _wait_for(seed / 'started', timeout_s=60.0)
+    finally:
+        suite.kill()                                            # no chance to pass anything on
+        suite.wait()
+    _wait_for(seed / 'summary.json')
+    s = _json.loads((seed / 'summary.json').read_text())
+    assert s['signals'] == ['SIGTERM'] and s['end_reason'] == 'interrupted (SIGTERM)'
+    pid, _ = _json.loads((seed / 'started').read_text())
+    for _ in range(250):                                        # the demo exits after it
+        try:
+            os.kill(pid, 0)
+        except ProcessLookupError:
+            break
+        import time
+        time.sleep(0.02)
+    else:
+        os.kill(pid, signal.SIGKILL)
+        raise AssertionError('the demo outlived the killed suite')
 
 
 def test_closed_loop_resume_keeps_finished_trials_of_the_same_code(tmp_path, monkeypatch,
@@ -198,7 +327,7 @@ def test_closed_loop_resume_keeps_finished_trials_of_the_same_code(tmp_path, mon
     from terrain_perception.bench import closed_loop, pipeline, runner
     calls = []
     monkeypatch.setattr(pipeline, 'code_revision', lambda *a: 'a' * 40)
-    monkeypatch.setattr(closed_loop.subprocess, 'run', _fake_demo(calls, 'a' * 40))
+    monkeypatch.setattr(closed_loop, 'run_demo', _fake_demo(calls, 'a' * 40))
     out = tmp_path / 'full table'          # a space in the path, as a user's may have
     base = ['closed-loop', '--courses', 'rocks-6cm', '--variants', 'full', '--seeds', '2',
             '--first-seed', '10', '--front-gap', '0.3', '--out', str(out)]

@@ -30,13 +30,23 @@ before its end (interrupted, or without a summary) is run again, and a finished 
 does not keep is moved aside to ``seed<S>.replaced-<time>``, never overwritten. ``--resume
 any-code`` also keeps trials of other commits; the table then says how many, and
 ``code_revisions`` lists them. Without ``--resume`` a finished trial in ``--out`` is an error.
+
+Stopping: Ctrl-C or SIGTERM (``kill PID``: a run started in the background of a script ignores
+SIGINT) stops the trial under way the way Ctrl-C stops ``terrain-demo`` (its nodes stopped, its
+report written, marked interrupted), starts no further trial, and prints and writes the table of
+the trials finished so far (JSON ``stopped``; exit code 130). A second signal stops the trial at
+once. ``--resume`` later runs the interrupted trial again and the ones never started. Each
+trial's demo runs in its own process group, so a terminal's Ctrl-C reaches it once, through the
+suite, and it gets SIGTERM (and stops the same way) if the suite itself is killed.
 """
 
 from __future__ import annotations
 
 import argparse
+import ctypes
 import json
 import os
+import signal
 import subprocess
 import sys
 import time
@@ -118,10 +128,15 @@ def _start_x(course: str, robot: str, front_gap) -> 'float | None':
     return COURSE_CLASSES[course].approach_m - front - effective_gap(robot, front_gap)
 
 
+def demo_program() -> str:
+    """The ``terrain-demo`` the trials run: the one installed next to this Python."""
+    return str(Path(sys.executable).parent / 'terrain-demo')
+
+
 def trial_command(args, course: str, robot: str, variant: str, seed: int,
                   run_dir: Path) -> list:
     """The ``terrain-demo`` command line of one trial."""
-    cmd = [str(Path(sys.executable).parent / 'terrain-demo'), '--robot', robot,
+    cmd = [demo_program(), '--robot', robot,
            '--course', course, '--seed', str(seed), '--run-dir', str(run_dir),
            *([] if getattr(args, 'bag', False) else ['--no-bag']),
            '--quiet', '--max-sim-time', str(args.max_sim_time), '--timeout', str(args.timeout),
@@ -165,6 +180,67 @@ def finished_trial(run_dir: Path, cmd: list, revision: Optional[str],
     return s, ''
 
 
+class Stop:
+    """Ctrl-C / SIGTERM while the suite runs: the first stops the trial under way gracefully
+    (SIGINT to its demo, which writes its report) and starts no other; a second one is passed
+    on too (the demo then stops at once)."""
+
+    def __init__(self) -> None:
+        self.reason: Optional[str] = None
+        self.proc: Optional[subprocess.Popen] = None
+
+    def on_signal(self, signum, _frame) -> None:
+        name = signal.Signals(signum).name
+        if self.reason is None:
+            self.reason = name
+            print(f'\n{name}: stopping the trial under way and writing the table of the '
+                  'finished ones (again to stop the trial at once)', flush=True)
+        if self.proc is not None and self.proc.poll() is None:
+            try:
+                self.proc.send_signal(signal.SIGINT)
+            except ProcessLookupError:
+                pass
+
+
+_PR_SET_PDEATHSIG = 1
+
+
+def _demo_child_setup() -> None:
+    # In the demo before exec: its own process group (a terminal's Ctrl-C reaches the suite,
+    # which passes it on once; the demo's second Ctrl-C means "stop at once"), and SIGTERM,
+    # which it handles like Ctrl-C, if the suite dies. Not a new session: that would move it
+    # to another scheduling autogroup than a plain terrain-demo run.
+    os.setpgid(0, 0)
+    try:
+        ctypes.CDLL('libc.so.6', use_errno=True).prctl(_PR_SET_PDEATHSIG, signal.SIGTERM)
+    except OSError:
+        pass
+
+
+def run_demo(cmd: list, timeout_s: float, stop: Stop) -> 'tuple[int, str]':
+    """Run one trial's demo; return its exit code and output. Past ``timeout_s`` (the demo's
+    own wall-time limit did not end it) it gets SIGINT, then SIGKILL a minute later."""
+    proc = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,
+                            stderr=subprocess.STDOUT, text=True, env=dict(os.environ),
+                            preexec_fn=_demo_child_setup)
+    stop.proc = proc
+    try:
+        try:
+            out, _ = proc.communicate(timeout=timeout_s)
+        except subprocess.TimeoutExpired:
+            proc.send_signal(signal.SIGINT)
+            try:
+                out, _ = proc.communicate(timeout=60.0)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                out, _ = proc.communicate()
+            out = ((out or '')
+                   + f'\nterrain-bench: the demo ran past {timeout_s:.0f} s and was stopped')
+    finally:
+        stop.proc = None
+    return proc.returncode, out or ''
+
+
 def _set_aside(run_dir: Path) -> Path:
     """Move a finished trial's run directory out of the way (never delete results)."""
     dest = run_dir.with_name(run_dir.name + time.strftime('.replaced-%Y%m%d-%H%M%S'))
@@ -173,7 +249,7 @@ def _set_aside(run_dir: Path) -> Path:
 
 
 def _trial(args, course: str, robot: str, variant: str, seed: int, out: Path,
-           revision: Optional[str] = None) -> dict:
+           revision: Optional[str] = None, stop: Optional[Stop] = None) -> dict:
     run_dir = out / course / variant / f'seed{seed}'
     cmd = trial_command(args, course, robot, variant, seed, run_dir)
     start_x = _start_x(course, robot, args.front_gap)
@@ -192,17 +268,20 @@ def _trial(args, course: str, robot: str, variant: str, seed: int, out: Path,
             row['replaced'] = str(_set_aside(run_dir))
             row['replaced_because'] = why
         t0 = time.monotonic()
-        proc = subprocess.run(cmd, capture_output=True, text=True, env=dict(os.environ),
-                              timeout=args.timeout + 300)
-        row.update(resumed=False, wall_s=round(time.monotonic() - t0, 1),
-                   exit_code=proc.returncode)
+        stop = stop or Stop()
+        code, output = run_demo(cmd, args.timeout + 300, stop)
+        row.update(resumed=False, wall_s=round(time.monotonic() - t0, 1), exit_code=code)
         summary_file = run_dir / 'summary.json'
         if not summary_file.is_file():
-            tail = (proc.stdout + proc.stderr).strip().splitlines()[-3:]
+            tail = output.strip().splitlines()[-3:]
             row.update(ok=False, error='no summary.json: ' + ' | '.join(tail),
-                       code_revision=revision)
+                       code_revision=revision, interrupted=stop.reason is not None)
             return row
         s = json.loads(summary_file.read_text())
+        if str(s.get('end_reason', '')).startswith('interrupted'):
+            row.update(ok=False, interrupted=True, error=f'{s["end_reason"]} at '
+                       f'{s.get("sim_time_s")} s sim', code_revision=s.get('code_revision'))
+            return row
     row.update(ok=True, code_revision=s.get('code_revision'),
                crossed=bool(s.get('crossed')), falls=s.get('falls'),
                distance_m=s.get('distance_m'), sim_time_s=s.get('sim_time_s'),
@@ -245,11 +324,24 @@ def run(args) -> dict:
                       f'{gap - VIEW_MARGIN_M:.2f} m ahead of its front feet; its trials start '
                       f'{gap:.2f} m before the rough section, not {args.front_gap:.2f} m',
                       flush=True)
+    stop = Stop()
+    handlers = {sig: signal.signal(sig, stop.on_signal) for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        trials = _run_trials(args, out, revision, stop)
+    finally:
+        for sig, handler in handlers.items():
+            signal.signal(sig, handler)
+    return _table(args, trials, revision, stop)
+
+
+def _run_trials(args, out: Path, revision: Optional[str], stop: Stop) -> list:
     trials = []
     for course in args.courses:
         for variant in args.variants:
             for seed in range(args.first_seed, args.first_seed + args.seeds):
-                row = _trial(args, course, COURSES[course], variant, seed, out, revision)
+                if stop.reason is not None:
+                    return trials
+                row = _trial(args, course, COURSES[course], variant, seed, out, revision, stop)
                 trials.append(row)
                 wall = row.get('wall_s')
                 wall = '?' if wall is None else f'{wall:.0f}'
@@ -262,12 +354,22 @@ def run(args) -> dict:
                          f'falls {row.get("falls")} dist {row.get("distance_m")} m '
                          f'({row.get("end_reason")}; {wall} s wall{kept}'
                          f'{"" if row.get("complete_graph") else "; INCOMPLETE GRAPH"})'
-                         if row['ok'] else f'FAILED TO RUN: {row["error"]}'), flush=True)
+                         if row['ok'] else
+                         f'INTERRUPTED ({row["error"]}; not counted)' if row.get('interrupted')
+                         else f'FAILED TO RUN: {row["error"]}'), flush=True)
                 if row.get('replaced'):
                     print(f'      an earlier trial was moved to {row["replaced"]}: '
                           f'{row["replaced_because"]}', flush=True)
                 for text in row.get('fall_analysis') or []:
                     print(f'      {text}', flush=True)
+    return trials
+
+
+def _table(args, all_trials: list, revision: Optional[str], stop: Stop) -> dict:
+    """Print and return the table of the trials that ended by themselves (an interrupted
+    trial tells nothing about the system; ``--resume`` runs it again)."""
+    trials = [r for r in all_trials if not r.get('interrupted')]
+    planned = len(args.courses) * len(args.variants) * args.seeds
     success, falls, speed = {}, {}, {}
     for course in args.courses:
         for variant in args.variants:
@@ -298,18 +400,22 @@ def run(args) -> dict:
               'plans')
     else:
         print('capture-to-plan latency (full): not measured (no trial of the full system)')
+    if stop.reason is not None or len(trials) < planned:
+        print(f'stopped ({stop.reason or "a trial was interrupted"}): {len(trials)} of '
+              f'{planned} trials finished; the same command with --resume runs the others')
     revisions = sorted({str(r.get('code_revision')) for r in trials})
     n_kept = sum(1 for r in trials if r.get('resumed'))
     if n_kept:
         print(f'{n_kept} of {len(trials)} trials kept from earlier runs (--resume)')
     if len(revisions) > 1:
         print(f'the trials ran {len(revisions)} code revisions: {", ".join(revisions)}')
-    for r in trials:
+    for r in all_trials:
         r.pop('latencies_ms', None)
-    return {'success': success, 'falls': falls, 'speed_mps': speed,
+    return {'stopped': stop.reason, 'trials_planned': planned,
+            'trials_finished': len(trials), 'success': success, 'falls': falls, 'speed_mps': speed,
             'latency_ms_median': med, 'latency_ms_p95': p95, 'latency_samples': int(lat.size),
             'code_revision': revision, 'code_revisions': revisions,
-            'trials': trials, 'settings': {'seeds': args.seeds, 'first_seed': args.first_seed,
+            'trials': all_trials, 'settings': {'seeds': args.seeds, 'first_seed': args.first_seed,
                                            'resume': getattr(args, 'resume', None),
                                            'max_sim_time_s': args.max_sim_time,
                                            'image_scale': args.image_scale,

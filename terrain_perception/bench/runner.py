@@ -63,7 +63,9 @@ def main(argv=None) -> int:
                                      'elapsed_s': round(elapsed, 2)})
         args.json.write_text(json.dumps(payload, indent=2, sort_keys=True, default=float))
         print(f'[{known.suite}] figures written to {args.json}')
-    return 0
+    # A suite stopped by Ctrl-C / SIGTERM returns the figures of what it finished, marked
+    # 'stopped'; the exit code still says it did not run to its end.
+    return 130 if figures.get('stopped') else 0
 
 
 if __name__ == '__main__':
