@@ -282,6 +282,17 @@ def test_closed_loop_stopped_by_sigterm_keeps_the_finished_trials(tmp_path, monk
     assert [t['resumed'] for t in b['trials']] == [True, False, False]
     assert 'interrupted (SIGINT)' in b['trials'][1]['replaced_because']
     assert len(list(cell.glob('seed11.replaced-*/summary.json'))) == 1
+    # --table-only runs nothing: the three finished trials, and a fourth seed not run yet.
+    capsys.readouterr()
+    wider = [a if a != '3' else '4' for a in base]
+    assert runner.main(wider + ['--table-only', '--json', str(tmp_path / 'c.json')]) == 0
+    c = _json.loads((tmp_path / 'c.json').read_text())
+    assert (c['trials_planned'], c['trials_finished']) == (4, 3) and c['stopped'] is None
+    assert [bool(t.get('not_run')) for t in c['trials']] == [False, False, False, True]
+    assert c['success']['rocks-6cm']['full'] == 1.0 and c['latency_ms_median'] == 161.0
+    assert not (cell / 'seed13').exists()
+    assert 'seed   13: not run (not run yet)' in capsys.readouterr().out
+    assert runner.main(base + ['--table-only', '--out', str(tmp_path / 'none')]) == 2
 
 
 def test_closed_loop_trial_stops_gracefully_when_the_suite_is_killed(tmp_path):

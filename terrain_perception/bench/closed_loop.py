@@ -30,6 +30,8 @@ before its end (interrupted, or without a summary) is run again, and a finished 
 does not keep is moved aside to ``seed<S>.replaced-<time>``, never overwritten. ``--resume
 any-code`` also keeps trials of other commits; the table then says how many, and
 ``code_revisions`` lists them. Without ``--resume`` a finished trial in ``--out`` is an error.
+``--table-only`` runs nothing: the table of the trials ``--out`` already holds (as ``--resume
+any-code`` would keep them, or as ``--resume same-code`` with it), the others listed as not run.
 
 Stopping: Ctrl-C or SIGTERM (``kill PID``: a run started in the background of a script ignores
 SIGINT) stops the trial under way the way Ctrl-C stops ``terrain-demo`` (its nodes stopped, its
@@ -98,6 +100,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help='keep the trials already finished in --out with the same terrain-demo '
                         'command (and, unless "any-code", the same clean commit of the code) '
                         'and run the others: a long run in pieces')
+    p.add_argument('--table-only', action='store_true',
+                   help='run no trial: print (and --json) the table of the finished trials '
+                        'already in --out for this command (any code revision unless '
+                        '--resume same-code); the others are listed as not run')
 
 
 # Flat ground kept between the camera's first view and the rough section (see effective_gap).
@@ -258,11 +264,15 @@ def _trial(args, course: str, robot: str, variant: str, seed: int, out: Path,
            'front_gap_m': (None if args.front_gap is None
                            else effective_gap(robot, args.front_gap)),
            'run_dir': str(run_dir)}
-    resume = getattr(args, 'resume', None)
+    table_only = getattr(args, 'table_only', False)
+    resume = getattr(args, 'resume', None) or ('any-code' if table_only else None)
     kept, why = finished_trial(run_dir, cmd, revision, resume)
     if kept is not None:
         s = kept
         row.update(resumed=True, wall_s=s.get('wall_time_s'), exit_code=None)
+    elif table_only:
+        row.update(ok=False, not_run=True, error=why or 'not run yet', code_revision=None)
+        return row
     else:
         if (run_dir / 'summary.json').is_file():       # only with --resume (run checks)
             row['replaced'] = str(_set_aside(run_dir))
@@ -304,9 +314,12 @@ def run(args) -> dict:
         if not sep or head.count(':') != 1 or '' in head.split(':'):
             raise ValueError(f'--param {text!r} is not of the form NODE:NAME:=VALUE '
                              f'(e.g. walking_controller:touchdown_verify_s:=0.0)')
+    if getattr(args, 'table_only', False) and (args.out is None or not args.out.is_dir()):
+        raise ValueError('--table-only tabulates the trials in --out: '
+                         + ('give --out' if args.out is None else f'{args.out} does not exist'))
     out = args.out or Path('runs') / time.strftime('bench-%Y%m%d-%H%M%S')
     out.mkdir(parents=True, exist_ok=True)
-    if getattr(args, 'resume', None) is None:
+    if getattr(args, 'resume', None) is None and not getattr(args, 'table_only', False):
         done = [str(out / c / v / f'seed{s}') for c in args.courses for v in args.variants
                 for s in range(args.first_seed, args.first_seed + args.seeds)
                 if (out / c / v / f'seed{s}' / 'summary.json').is_file()]
@@ -355,6 +368,7 @@ def _run_trials(args, out: Path, revision: Optional[str], stop: Stop) -> list:
                          f'({row.get("end_reason")}; {wall} s wall{kept}'
                          f'{"" if row.get("complete_graph") else "; INCOMPLETE GRAPH"})'
                          if row['ok'] else
+                         f'not run ({row["error"]})' if row.get('not_run') else
                          f'INTERRUPTED ({row["error"]}; not counted)' if row.get('interrupted')
                          else f'FAILED TO RUN: {row["error"]}'), flush=True)
                 if row.get('replaced'):
@@ -367,8 +381,9 @@ def _run_trials(args, out: Path, revision: Optional[str], stop: Stop) -> list:
 
 def _table(args, all_trials: list, revision: Optional[str], stop: Stop) -> dict:
     """Print and return the table of the trials that ended by themselves (an interrupted
-    trial tells nothing about the system; ``--resume`` runs it again)."""
-    trials = [r for r in all_trials if not r.get('interrupted')]
+    trial tells nothing about the system; ``--resume`` runs it again; with ``--table-only``
+    the trials not run are left out likewise)."""
+    trials = [r for r in all_trials if not r.get('interrupted') and not r.get('not_run')]
     planned = len(args.courses) * len(args.variants) * args.seeds
     success, falls, speed = {}, {}, {}
     for course in args.courses:
@@ -401,8 +416,11 @@ def _table(args, all_trials: list, revision: Optional[str], stop: Stop) -> dict:
     else:
         print('capture-to-plan latency (full): not measured (no trial of the full system)')
     if stop.reason is not None or len(trials) < planned:
-        print(f'stopped ({stop.reason or "a trial was interrupted"}): {len(trials)} of '
-              f'{planned} trials finished; the same command with --resume runs the others')
+        why = (f'stopped ({stop.reason})' if stop.reason is not None else
+               'table only' if getattr(args, 'table_only', False) else
+               'a trial was interrupted')
+        print(f'{why}: {len(trials)} of {planned} trials finished; the same command with '
+              '--resume runs the others')
     revisions = sorted({str(r.get('code_revision')) for r in trials})
     n_kept = sum(1 for r in trials if r.get('resumed'))
     if n_kept:
