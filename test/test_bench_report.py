@@ -291,7 +291,7 @@ def test_closed_loop_stopped_by_sigterm_keeps_the_finished_trials(tmp_path, monk
     assert [bool(t.get('not_run')) for t in c['trials']] == [False, False, False, True]
     assert c['success']['rocks-6cm']['full'] == 1.0 and c['latency_ms_median'] == 161.0
     assert not (cell / 'seed13').exists()
-    assert 'seed   13: not run (not run yet)' in capsys.readouterr().out
+    assert 'rocks-6cm full: not run, seeds 13\n' in capsys.readouterr().out
     assert runner.main(base + ['--table-only', '--out', str(tmp_path / 'none')]) == 2
 
 
@@ -382,6 +382,19 @@ def test_closed_loop_resume_keeps_finished_trials_of_the_same_code(tmp_path, mon
     assert d['code_revisions'] == ['a' * 40, 'c' * 40]
     assert [t['resumed'] for t in d['trials']] == [False, True]
     assert 'kept from an earlier run of code cccccccccc' in capsys.readouterr().out
+
+
+def test_closed_loop_keeps_a_trial_whose_table_was_moved_but_not_another_command():
+    from terrain_perception.bench.closed_loop import _same_command
+    cmd = ['/venv/bin/terrain-demo', '--robot', 'frog', '--seed', '100', '--run-dir',
+           '/new place/t/seed100', '--no-bag', '--max-sim-time', '480.0']
+    ran = ('terrain-demo --robot frog --seed 100 --run-dir /old place/t/seed100 --no-bag '
+           '--max-sim-time 480.0')
+    assert _same_command(ran, cmd)                       # the folder given another way / moved
+    assert not _same_command(ran.replace('480.0', '200.0'), cmd)
+    assert not _same_command(ran.replace('--seed 100', '--seed 101'), cmd)
+    assert not _same_command(ran + ' --blind', cmd)
+    assert not _same_command(ran.replace(' --no-bag', ''), cmd)
 
 
 def test_code_revision_names_the_commit_and_a_changed_tree(tmp_path):

@@ -73,10 +73,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument('--seeds', type=int, default=10, help='seeds per course (default 10)')
     p.add_argument('--first-seed', type=int, default=100,
                    help='first course seed (default 100: not the demo\'s seed 0)')
-    p.add_argument('--max-sim-time', type=float, default=150.0,
-                   help='simulated-time limit per trial [s] (default 150)')
-    p.add_argument('--timeout', type=float, default=900.0,
-                   help='wall-time limit per trial [s] (default 900)')
+    p.add_argument('--max-sim-time', type=float, default=None,
+                   help='simulated-time limit per trial [s] (default per course: rocks 200, '
+                        'stones 480)')
+    p.add_argument('--timeout', type=float, default=None,
+                   help='wall-time limit per trial [s] (default per course: rocks 900, stones '
+                        '2500)')
     p.add_argument('--image-scale', type=float, default=1.0,
                    help='camera resolution relative to the profile (default 1)')
     p.add_argument('--front-gap', type=float, default=None,
@@ -104,6 +106,20 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help='run no trial: print (and --json) the table of the finished trials '
                         'already in --out for this command (any code revision unless '
                         '--resume same-code); the others are listed as not run')
+
+
+# Per course: the simulated- and wall-time limits of a trial [s] by default (the limits the
+# table's trials have run with). FROG-I crossed the stones in 340-385 s of simulated time,
+# LittleDog rocks-6cm in 85-110 s; a trial takes about 5.2 s of wall time per simulated second.
+LIMITS = {'rocks-6cm': (200.0, 900.0), 'rocks-12cm': (200.0, 900.0),
+          'stones-15cm': (480.0, 2500.0)}
+
+
+def limits(args, course: str) -> 'tuple[float, float]':
+    """A trial's ``(max_sim_time, timeout)``: the options, else the course's defaults."""
+    sim, wall = LIMITS[course]
+    return (sim if args.max_sim_time is None else args.max_sim_time,
+            wall if args.timeout is None else args.timeout)
 
 
 # Flat ground kept between the camera's first view and the rough section (see effective_gap).
@@ -142,10 +158,11 @@ def demo_program() -> str:
 def trial_command(args, course: str, robot: str, variant: str, seed: int,
                   run_dir: Path) -> list:
     """The ``terrain-demo`` command line of one trial."""
+    max_sim, timeout = limits(args, course)
     cmd = [demo_program(), '--robot', robot,
            '--course', course, '--seed', str(seed), '--run-dir', str(run_dir),
            *([] if getattr(args, 'bag', False) else ['--no-bag']),
-           '--quiet', '--max-sim-time', str(args.max_sim_time), '--timeout', str(args.timeout),
+           '--quiet', '--max-sim-time', str(max_sim), '--timeout', str(timeout),
            '--image-scale', str(args.image_scale), *VARIANTS[variant]]
     start_x = _start_x(course, robot, args.front_gap)
     if start_x is not None:
@@ -157,8 +174,15 @@ def trial_command(args, course: str, robot: str, variant: str, seed: int,
 
 def _same_command(summary_command: str, cmd: list) -> bool:
     """Whether a run's recorded ``command`` (``terrain-demo ARGS``, as the demo writes it) is
-    ``cmd`` (whose first element is the demo's path, which may differ between venvs)."""
-    return summary_command.partition(' ')[2] == ' '.join(str(a) for a in cmd[1:])
+    ``cmd`` but for the demo's path (which may differ between venvs) and the ``--run-dir``
+    (the summary is in it, wherever the table's folder was given from or moved to)."""
+    args = [str(a) for a in cmd[1:]]
+    i = args.index('--run-dir')
+    head = ' '.join(args[:i + 1]) + ' '
+    tail = ' '.join(args[i + 2:])
+    got = summary_command.partition(' ')[2]
+    return (got.startswith(head) and len(got) > len(head) + len(tail)
+            and (not tail or got.endswith(' ' + tail)))
 
 
 def finished_trial(run_dir: Path, cmd: list, revision: Optional[str],
@@ -271,6 +295,8 @@ def _trial(args, course: str, robot: str, variant: str, seed: int, out: Path,
         s = kept
         row.update(resumed=True, wall_s=s.get('wall_time_s'), exit_code=None)
     elif table_only:
+        if not why and run_dir.exists():
+            why = 'no summary.json: under way, or stopped before its report'
         row.update(ok=False, not_run=True, error=why or 'not run yet', code_revision=None)
         return row
     else:
@@ -279,7 +305,7 @@ def _trial(args, course: str, robot: str, variant: str, seed: int, out: Path,
             row['replaced_because'] = why
         t0 = time.monotonic()
         stop = stop or Stop()
-        code, output = run_demo(cmd, args.timeout + 300, stop)
+        code, output = run_demo(cmd, limits(args, course)[1] + 300, stop)
         row.update(resumed=False, wall_s=round(time.monotonic() - t0, 1), exit_code=code)
         summary_file = run_dir / 'summary.json'
         if not summary_file.is_file():
@@ -306,7 +332,7 @@ def _trial(args, course: str, robot: str, variant: str, seed: int, out: Path,
 def run(args) -> dict:
     if args.quick:
         args.courses, args.variants, args.seeds = ['rocks-6cm'], ['full'], 1
-        args.max_sim_time, args.image_scale = min(args.max_sim_time, 10.0), 0.5
+        args.max_sim_time, args.image_scale = min(args.max_sim_time or 10.0, 10.0), 0.5
     for text in getattr(args, 'param', None) or []:
         # A malformed override fails here, not after the first trial (terrain-demo checks
         # the node name against the launch file).
@@ -356,6 +382,8 @@ def _run_trials(args, out: Path, revision: Optional[str], stop: Stop) -> list:
                     return trials
                 row = _trial(args, course, COURSES[course], variant, seed, out, revision, stop)
                 trials.append(row)
+                if row.get('not_run') and not (out / course / variant / f'seed{seed}').exists():
+                    continue                    # --table-only: listed per cell below the table
                 wall = row.get('wall_s')
                 wall = '?' if wall is None else f'{wall:.0f}'
                 kept = ('; kept from an earlier run'
@@ -377,6 +405,18 @@ def _run_trials(args, out: Path, revision: Optional[str], stop: Stop) -> list:
                 for text in row.get('fall_analysis') or []:
                     print(f'      {text}', flush=True)
     return trials
+
+
+def _ranges(seeds: list) -> str:
+    """``[100, 101, 102, 105]`` -> ``'100-102, 105'``."""
+    parts, start = [], None
+    for i, s in enumerate(seeds):
+        if start is None:
+            start = s
+        if i + 1 == len(seeds) or seeds[i + 1] != s + 1:
+            parts.append(f'{start}' if start == s else f'{start}-{s}')
+            start = None
+    return ', '.join(parts)
 
 
 def _table(args, all_trials: list, revision: Optional[str], stop: Stop) -> dict:
@@ -415,6 +455,12 @@ def _table(args, all_trials: list, revision: Optional[str], stop: Stop) -> dict:
               'plans')
     else:
         print('capture-to-plan latency (full): not measured (no trial of the full system)')
+    for course in args.courses:
+        for variant in args.variants:
+            seeds = [r['seed'] for r in all_trials if r['course'] == course
+                     and r['variant'] == variant and r.get('not_run')]
+            if seeds:
+                print(f'{course} {variant}: not run, seeds {_ranges(seeds)}')
     if stop.reason is not None or len(trials) < planned:
         why = (f'stopped ({stop.reason})' if stop.reason is not None else
                'table only' if getattr(args, 'table_only', False) else
@@ -436,6 +482,9 @@ def _table(args, all_trials: list, revision: Optional[str], stop: Stop) -> dict:
             'trials': all_trials, 'settings': {'seeds': args.seeds, 'first_seed': args.first_seed,
                                            'resume': getattr(args, 'resume', None),
                                            'max_sim_time_s': args.max_sim_time,
+                                           'timeout_s': args.timeout,
+                                           'limits_s': {c: limits(args, c)
+                                                        for c in args.courses},
                                            'image_scale': args.image_scale,
                                            'front_gap_m': args.front_gap,
                                            'params': list(getattr(args, 'param', None) or [])}}
