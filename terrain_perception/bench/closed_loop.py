@@ -305,7 +305,10 @@ def _trial(args, course: str, robot: str, variant: str, seed: int, out: Path,
             row['replaced_because'] = why
         t0 = time.monotonic()
         stop = stop or Stop()
-        code, output = run_demo(cmd, limits(args, course)[1] + 300, stop)
+        max_sim, timeout = limits(args, course)
+        print(f'  {course:12s} {variant:7s} seed {seed:4d}: running ({time.strftime("%H:%M")}; '
+              f'at most {max_sim:.0f} s simulated, {timeout:.0f} s wall; {run_dir})', flush=True)
+        code, output = run_demo(cmd, timeout + 300, stop)
         row.update(resumed=False, wall_s=round(time.monotonic() - t0, 1), exit_code=code)
         summary_file = run_dir / 'summary.json'
         if not summary_file.is_file():
