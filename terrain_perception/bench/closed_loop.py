@@ -469,7 +469,8 @@ def _table(args, all_trials: list, revision: Optional[str], stop: Stop) -> dict:
                'table only' if getattr(args, 'table_only', False) else
                'a trial was interrupted')
         print(f'{why}: {len(trials)} of {planned} trials finished; the same command with '
-              '--resume runs the others')
+              '--resume' + (' instead of --table-only' if why == 'table only' else '')
+              + ' runs the others')
     revisions = sorted({str(r.get('code_revision')) for r in trials})
     n_kept = sum(1 for r in trials if r.get('resumed'))
     if n_kept:
