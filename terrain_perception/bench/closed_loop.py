@@ -385,7 +385,7 @@ def _run_trials(args, out: Path, revision: Optional[str], stop: Stop) -> list:
                     return trials
                 row = _trial(args, course, COURSES[course], variant, seed, out, revision, stop)
                 trials.append(row)
-                if row.get('not_run') and not (out / course / variant / f'seed{seed}').exists():
+                if row.get('not_run') and not Path(row['run_dir']).exists():
                     continue                    # --table-only: listed per cell below the table
                 wall = row.get('wall_s')
                 wall = '?' if wall is None else f'{wall:.0f}'
