@@ -384,6 +384,58 @@ def test_closed_loop_resume_keeps_finished_trials_of_the_same_code(tmp_path, mon
     assert 'kept from an earlier run of code cccccccccc' in capsys.readouterr().out
 
 
+def test_closed_loop_records_outlive_the_run_directories(tmp_path, monkeypatch, capsys):
+    """--records: every counted trial's summary is kept in the records; on a machine without
+    the run directories (a fresh clone) the table is rebuilt from them, and a record the
+    resume does not keep is run again and replaced."""
+    import json as _json
+    import shutil
+    from terrain_perception.bench import closed_loop, pipeline, runner
+    calls = []
+    monkeypatch.setattr(pipeline, 'code_revision', lambda *a: 'a' * 40)
+    monkeypatch.setattr(closed_loop, 'run_demo', _fake_demo(calls, 'a' * 40))
+    out, records = tmp_path / 'out', tmp_path / 'records'
+    base = ['closed-loop', '--courses', 'rocks-6cm', '--variants', 'full', '--seeds', '2',
+            '--first-seed', '10', '--front-gap', '0.3', '--out', str(out),
+            '--records', str(records)]
+    assert runner.main(base + ['--json', str(tmp_path / 'a.json')]) == 0
+    first = _json.loads((tmp_path / 'a.json').read_text())
+    rec10 = records / 'rocks-6cm' / 'full' / 'seed10.json'
+    assert _json.loads(rec10.read_text()) == _json.loads(
+        (out / 'rocks-6cm' / 'full' / 'seed10' / 'summary.json').read_text())
+    assert [t['recorded'] for t in first['trials']] == ['new', 'new']
+    # A new machine: no run directories. Without --resume the records are not run over.
+    shutil.rmtree(out)
+    capsys.readouterr()
+    assert runner.main(base) == 2 and 'already records 2' in capsys.readouterr().err
+    assert len(calls) == 2
+    # --table-only reads them (no --out folder needed); so does --resume, running nothing.
+    assert runner.main(base + ['--table-only', '--json', str(tmp_path / 'b.json')]) == 0
+    b = _json.loads((tmp_path / 'b.json').read_text())
+    assert not out.exists() and len(calls) == 2
+    assert b['success'] == first['success'] == {'rocks-6cm': {'full': 0.5}}
+    assert b['latency_ms_median'] == first['latency_ms_median']
+    assert [t.get('from_record') for t in b['trials']] == [str(rec10), str(
+        records / 'rocks-6cm' / 'full' / 'seed11.json')]
+    # A record of other code: --resume (same code) runs that trial again and replaces it.
+    rec11 = records / 'rocks-6cm' / 'full' / 'seed11.json'
+    rec11.write_text(_json.dumps({**_json.loads(rec11.read_text()), 'code_revision': 'b' * 40}))
+    capsys.readouterr()
+    assert runner.main(base + ['--resume', '--json', str(tmp_path / 'c.json')]) == 0
+    assert len(calls) == 3 and calls[-1][calls[-1].index('--seed') + 1] == '11'
+    printed = capsys.readouterr().out
+    assert 'kept from its record' in printed and 'earlier record was replaced' in printed
+    assert _json.loads(rec11.read_text())['code_revision'] == 'a' * 40
+    c = _json.loads((tmp_path / 'c.json').read_text())
+    assert [t.get('recorded') for t in c['trials']] == [None, 'replaced']
+    # A trial finished in --out but missing from the records (run without --records) is
+    # written there when the table is next made.
+    rec11.unlink()
+    assert runner.main(base + ['--table-only']) == 0
+    assert _json.loads(rec11.read_text()) == _json.loads(
+        (out / 'rocks-6cm' / 'full' / 'seed11' / 'summary.json').read_text())
+
+
 def test_closed_loop_keeps_a_trial_whose_table_was_moved_but_not_another_command():
     from terrain_perception.bench.closed_loop import _same_command
     cmd = ['/venv/bin/terrain-demo', '--robot', 'frog', '--seed', '100', '--run-dir',

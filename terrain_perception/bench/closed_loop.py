@@ -33,6 +33,15 @@ any-code`` also keeps trials of other commits; the table then says how many, and
 ``--table-only`` runs nothing: the table of the trials ``--out`` already holds (as ``--resume
 any-code`` would keep them, or as ``--resume same-code`` with it), the others listed as not run.
 
+Records: run directories (bags, figures) stay on the machine that ran them, and a table of 90
+trials outlives many machines. ``--records DIR`` (the project's table: ``docs/closed-loop-table``,
+committed) holds one JSON file per trial the table counts, ``DIR/<course>/<variant>/seed<S>.json``:
+that trial's ``summary.json`` as the demo wrote it. Every trial the table counts is written there
+(a new one, or one kept from ``--out`` that the records lack or hold another version of), and a
+trial whose run directory is not in ``--out`` is kept from its record by the same rules as from a
+run directory (same command, ended by itself, the code ``--resume`` asks for). A trial run again
+replaces its record (git keeps the earlier one).
+
 Stopping: Ctrl-C or SIGTERM (``kill PID``: a run started in the background of a script ignores
 SIGINT) stops the trial under way the way Ctrl-C stops ``terrain-demo`` (its nodes stopped, its
 report written, marked interrupted), starts no further trial, and prints and writes the table of
@@ -102,6 +111,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help='keep the trials already finished in --out with the same terrain-demo '
                         'command (and, unless "any-code", the same clean commit of the code) '
                         'and run the others: a long run in pieces')
+    p.add_argument('--records', type=Path, default=None, metavar='DIR',
+                   help='keep every counted trial\'s summary in DIR/<course>/<variant>/'
+                        'seed<S>.json, and keep trials from there whose run directory is not '
+                        'in --out (the full table: docs/closed-loop-table, committed, so the '
+                        'table outlives the machine that ran its trials)')
     p.add_argument('--table-only', action='store_true',
                    help='run no trial: print (and --json) the table of the finished trials '
                         'already in --out for this command (any code revision unless '
@@ -185,18 +199,24 @@ def _same_command(summary_command: str, cmd: list) -> bool:
             and (not tail or got.endswith(' ' + tail)))
 
 
+def record_path(records: Path, course: str, variant: str, seed: int) -> Path:
+    """Where ``--records`` keeps one trial's summary."""
+    return Path(records) / course / variant / f'seed{seed}.json'
+
+
 def finished_trial(run_dir: Path, cmd: list, revision: Optional[str],
                    resume: Optional[str]) -> 'tuple[Optional[dict], str]':
     """``(summary, why)``: the summary of the trial already run in ``run_dir`` if ``--resume``
     keeps it (same command, a run that ended by itself and, for ``same-code``, the clean commit
-    ``revision``); else None and why not (``''``: nothing there to keep or replace)."""
-    f = run_dir / 'summary.json'
+    ``revision``); else None and why not (``''``: nothing there to keep or replace).
+    ``run_dir`` may also be a record file (``--records``): the summary itself."""
+    f = run_dir if run_dir.suffix == '.json' else run_dir / 'summary.json'
     if not f.is_file():
         return None, ''
     try:
         s = json.loads(f.read_text())
     except (OSError, ValueError) as e:
-        return None, f'its summary.json cannot be read ({e})'
+        return None, f'its {f.name} cannot be read ({e})'
     if not _same_command(str(s.get('command', '')), cmd):
         return None, f'it ran another command ({s.get("command")!r})'
     if str(s.get('end_reason', '')).startswith('interrupted'):
@@ -290,7 +310,16 @@ def _trial(args, course: str, robot: str, variant: str, seed: int, out: Path,
            'run_dir': str(run_dir)}
     table_only = getattr(args, 'table_only', False)
     resume = getattr(args, 'resume', None) or ('any-code' if table_only else None)
+    records = getattr(args, 'records', None)
+    record = record_path(records, course, variant, seed) if records is not None else None
     kept, why = finished_trial(run_dir, cmd, revision, resume)
+    if kept is None and record is not None and not (run_dir / 'summary.json').is_file():
+        kept, why_record = finished_trial(record, cmd, revision, resume)
+        if kept is not None:
+            row['from_record'] = str(record)
+        elif why_record:
+            why = f'its record: {why_record}'
+            row['record_replaced_because'] = why_record
     if kept is not None:
         s = kept
         row.update(resumed=True, wall_s=s.get('wall_time_s'), exit_code=None)
@@ -321,6 +350,8 @@ def _trial(args, course: str, robot: str, variant: str, seed: int, out: Path,
             row.update(ok=False, interrupted=True, error=f'{s["end_reason"]} at '
                        f'{s.get("sim_time_s")} s sim', code_revision=s.get('code_revision'))
             return row
+    if record is not None and 'from_record' not in row:
+        row['recorded'] = _write_record(record, s)
     row.update(ok=True, code_revision=s.get('code_revision'),
                crossed=bool(s.get('crossed')), falls=s.get('falls'),
                distance_m=s.get('distance_m'), sim_time_s=s.get('sim_time_s'),
@@ -330,6 +361,26 @@ def _trial(args, course: str, robot: str, variant: str, seed: int, out: Path,
                fall_analysis=[fa.get('text') for fa in s.get('fall_analysis') or []],
                success=bool(s.get('crossed')) and not s.get('falls'))
     return row
+
+
+def _write_record(record: Path, summary: dict) -> str:
+    """Write one counted trial's summary to its record unless the record already holds it:
+    ``'new'``, ``'replaced'`` or ``'same'``."""
+    text = json.dumps(summary, indent=1, sort_keys=True) + '\n'
+    if record.is_file():
+        try:
+            if json.loads(record.read_text()) == summary:
+                return 'same'
+        except (OSError, ValueError):
+            pass
+        state = 'replaced'
+    else:
+        state = 'new'
+    record.parent.mkdir(parents=True, exist_ok=True)
+    tmp = record.with_name(record.name + '.tmp')
+    tmp.write_text(text)
+    tmp.replace(record)
+    return state
 
 
 def run(args) -> dict:
@@ -343,11 +394,12 @@ def run(args) -> dict:
         if not sep or head.count(':') != 1 or '' in head.split(':'):
             raise ValueError(f'--param {text!r} is not of the form NODE:NAME:=VALUE '
                              f'(e.g. walking_controller:touchdown_verify_s:=0.0)')
-    if getattr(args, 'table_only', False) and (args.out is None or not args.out.is_dir()):
-        raise ValueError('--table-only tabulates the trials in --out: '
+    table_only = getattr(args, 'table_only', False)
+    if table_only and getattr(args, 'records', None) is None and (
+            args.out is None or not args.out.is_dir()):
+        raise ValueError('--table-only tabulates the trials in --out (or --records): '
                          + ('give --out' if args.out is None else f'{args.out} does not exist'))
     out = args.out or Path('runs') / time.strftime('bench-%Y%m%d-%H%M%S')
-    out.mkdir(parents=True, exist_ok=True)
     if getattr(args, 'resume', None) is None and not getattr(args, 'table_only', False):
         done = [str(out / c / v / f'seed{s}') for c in args.courses for v in args.variants
                 for s in range(args.first_seed, args.first_seed + args.seeds)
@@ -356,6 +408,16 @@ def run(args) -> dict:
             raise ValueError(f'{out} already holds {len(done)} finished trial(s) ({done[0]}, '
                              '...): pass --resume to keep them (trials that do not match are '
                              'moved aside and run again) or choose another --out')
+        records = getattr(args, 'records', None)
+        done = [str(record_path(records, c, v, s)) for c in args.courses for v in args.variants
+                for s in range(args.first_seed, args.first_seed + args.seeds)
+                if records is not None and record_path(records, c, v, s).is_file()]
+        if done:
+            raise ValueError(f'{records} already records {len(done)} trial(s) ({done[0]}, '
+                             '...): pass --resume to keep them (trials that do not match are '
+                             'run again and their records replaced)')
+    if not table_only:
+        out.mkdir(parents=True, exist_ok=True)
     from terrain_perception.bench.pipeline import code_revision
     revision = code_revision()
     if args.front_gap is not None:
@@ -389,10 +451,13 @@ def _run_trials(args, out: Path, revision: Optional[str], stop: Stop) -> list:
                     continue                    # --table-only: listed per cell below the table
                 wall = row.get('wall_s')
                 wall = '?' if wall is None else f'{wall:.0f}'
-                kept = ('; kept from an earlier run'
+                kept = (('; kept from its record' if row.get('from_record') else
+                         '; kept from an earlier run')
                         + ('' if row.get('code_revision') == revision else
                            f' of code {str(row.get("code_revision"))[:10]}')
                         if row.get('resumed') else '')
+                if row.get('recorded') in ('new', 'replaced'):
+                    kept += f'; record {row["recorded"]}'
                 print(f'  {course:12s} {variant:7s} seed {seed:4d}: '
                       + (f'{"crossed" if row.get("crossed") else "NOT crossed":11s} '
                          f'falls {row.get("falls")} dist {row.get("distance_m")} m '
@@ -402,6 +467,9 @@ def _run_trials(args, out: Path, revision: Optional[str], stop: Stop) -> list:
                          f'not run ({row["error"]})' if row.get('not_run') else
                          f'INTERRUPTED ({row["error"]}; not counted)' if row.get('interrupted')
                          else f'FAILED TO RUN: {row["error"]}'), flush=True)
+                if row.get('recorded') == 'replaced' and row.get('record_replaced_because'):
+                    print(f'      its earlier record was replaced: '
+                          f'{row["record_replaced_because"]}', flush=True)
                 if row.get('replaced'):
                     print(f'      an earlier trial was moved to {row["replaced"]}: '
                           f'{row["replaced_because"]}', flush=True)
@@ -473,8 +541,11 @@ def _table(args, all_trials: list, revision: Optional[str], stop: Stop) -> dict:
               + ' runs the others')
     revisions = sorted({str(r.get('code_revision')) for r in trials})
     n_kept = sum(1 for r in trials if r.get('resumed'))
+    n_records = sum(1 for r in trials if r.get('from_record'))
     if n_kept:
-        print(f'{n_kept} of {len(trials)} trials kept from earlier runs (--resume)')
+        print(f'{n_kept} of {len(trials)} trials kept from earlier runs (--resume)'
+              + (f', {n_records} of them from their records ({args.records})'
+                 if n_records else ''))
     if len(revisions) > 1:
         print(f'the trials ran {len(revisions)} code revisions: {", ".join(revisions)}')
     for r in all_trials:
@@ -485,6 +556,8 @@ def _table(args, all_trials: list, revision: Optional[str], stop: Stop) -> dict:
             'code_revision': revision, 'code_revisions': revisions,
             'trials': all_trials, 'settings': {'seeds': args.seeds, 'first_seed': args.first_seed,
                                            'resume': getattr(args, 'resume', None),
+                                           'records': (None if getattr(args, 'records', None)
+                                                       is None else str(args.records)),
                                            'max_sim_time_s': args.max_sim_time,
                                            'timeout_s': args.timeout,
                                            'limits_s': {c: limits(args, c)
