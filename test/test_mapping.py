@@ -238,18 +238,21 @@ def test_misfit_alignments_rejected_by_fitness_and_by_residual(terrain):
     u = m.update(cloud_at(scene, T1), prior, 1.0)
     assert pose_error(u.T_map_base, T1)[0] > 0.05 and not u.accepted
     assert m.counters['rejected_fitness'] == 1, u.reason
-    # after a few good alignments, a misfit with a 10x larger residual is refused (noise floor
-    # off: with it the constrained solver leaves this misfit at the prior, 25 deg off, where
-    # the fitness guard refuses it instead)
+    # after a few good alignments, an alignment whose residual is several times the noise floor
+    # is refused: a cloud of other rocks seen from near the prior (most points find a partner,
+    # none fits). A wrong minimum of the same terrain would do too, but where ICP ends from a
+    # 25-35 deg prior differs between CPUs (session 47: this one converged from 25 deg on an
+    # Intel Xeon and not on an AMD EPYC), so the test does not rest on one.
     m = first_mapper(scene, dataclasses.replace(loose, degeneracy_noise_gain=0.0))
     for k, dx in enumerate((0.01, 0.02, 0.03)):
         T = make_T(np.eye(3), [dx, 0.0, 0.0]) @ T0
         assert m.update(cloud_at(scene, T), T, 1.0 + k).accepted
     assert m.rmse_limit() < 0.003
     snap = snapshot(m)
-    prior = make_T(rpy_to_R(0.0, 0.0, np.radians(25.0)), [0.12, -0.1, 0.03]) @ T1
-    u = m.update(cloud_at(scene, T1), prior, 5.0)
-    assert pose_error(u.T_map_base, T1)[0] > 0.05 and not u.accepted
+    other_rocks = rc.HeightFieldScene(bumpy(seed=2))
+    prior = make_T(rpy_to_R(0.0, 0.0, np.radians(5.0)), [0.03, -0.02, 0.0]) @ T1
+    u = m.update(cloud_at(other_rocks, T1), prior, 5.0)
+    assert not u.accepted and u.fitness >= loose.min_fitness
     assert m.counters['rejected_rmse'] == 1, u.reason
     snap[-1]['rejected_rmse'] = 1
     assert_unchanged(m, snap)
