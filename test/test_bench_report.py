@@ -428,6 +428,11 @@ def test_closed_loop_records_outlive_the_run_directories(tmp_path, monkeypatch, 
     assert _json.loads(rec11.read_text())['code_revision'] == 'a' * 40
     c = _json.loads((tmp_path / 'c.json').read_text())
     assert [t.get('recorded') for t in c['trials']] == [None, 'replaced']
+    # Another command (an A/B experiment given the table's records by mistake) replaces no
+    # record: the suite refuses to start.
+    capsys.readouterr()
+    assert runner.main(base + ['--resume', '--max-sim-time', '50']) == 2
+    assert 'another terrain-demo command' in capsys.readouterr().err and len(calls) == 3
     # A trial finished in --out but missing from the records (run without --records) is
     # written there when the table is next made.
     rec11.unlink()

@@ -40,7 +40,8 @@ that trial's ``summary.json`` as the demo wrote it. Every trial the table counts
 (a new one, or one kept from ``--out`` that the records lack or hold another version of), and a
 trial whose run directory is not in ``--out`` is kept from its record by the same rules as from a
 run directory (same command, ended by itself, the code ``--resume`` asks for). A trial run again
-replaces its record (git keeps the earlier one).
+replaces its record (git keeps the earlier one); a record of another command is never replaced
+(the suite refuses to start: an experiment given the table's records by mistake).
 
 Stopping: Ctrl-C or SIGTERM (``kill PID``: a run started in the background of a script ignores
 SIGINT) stops the trial under way the way Ctrl-C stops ``terrain-demo`` (its nodes stopped, its
@@ -383,6 +384,34 @@ def _write_record(record: Path, summary: dict) -> str:
     return state
 
 
+def _check_records(args, out: Path) -> None:
+    """Refuse to run or tabulate against records of another command: a record is replaced
+    when its trial is run again with other code, never by another experiment (an A/B with
+    ``--param``, other limits) given the table's ``--records`` by mistake."""
+    records = getattr(args, 'records', None)
+    if records is None:
+        return
+    other = []
+    for c in args.courses:
+        for v in args.variants:
+            for seed in range(args.first_seed, args.first_seed + args.seeds):
+                f = record_path(records, c, v, seed)
+                if not f.is_file():
+                    continue
+                cmd = trial_command(args, c, COURSES[c], v, seed, out / c / v / f'seed{seed}')
+                try:
+                    ran = str(json.loads(f.read_text()).get('command', ''))
+                except (OSError, ValueError) as e:
+                    raise ValueError(f'record {f} cannot be read ({e})') from e
+                if not _same_command(ran, cmd):
+                    other.append((f, ran))
+    if other:
+        f, ran = other[0]
+        raise ValueError(f'{records} holds {len(other)} record(s) of another terrain-demo command '
+                         f'({f}: {ran!r}); records are replaced only by the same command: give '
+                         'this run its own --records folder, or remove those records')
+
+
 def run(args) -> dict:
     if args.quick:
         args.courses, args.variants, args.seeds = ['rocks-6cm'], ['full'], 1
@@ -416,6 +445,7 @@ def run(args) -> dict:
             raise ValueError(f'{records} already records {len(done)} trial(s) ({done[0]}, '
                              '...): pass --resume to keep them (trials that do not match are '
                              'run again and their records replaced)')
+    _check_records(args, out)
     if not table_only:
         out.mkdir(parents=True, exist_ok=True)
     from terrain_perception.bench.pipeline import code_revision
