@@ -385,26 +385,29 @@ def _write_record(record: Path, summary: dict) -> str:
 
 
 def _check_records(args, out: Path) -> None:
-    """Refuse to run or tabulate against records of another command: a record is replaced
-    when its trial is run again with other code, never by another experiment (an A/B with
-    ``--param``, other limits) given the table's ``--records`` by mistake."""
+    """Refuse to run over the records without ``--resume``, and to run or tabulate against
+    records of another command at all: a record is replaced when its trial is run again with
+    other code, never by another experiment (an A/B with ``--param``, other limits) given the
+    table's ``--records`` by mistake."""
     records = getattr(args, 'records', None)
     if records is None:
         return
+    held = [(c, v, seed, record_path(records, c, v, seed)) for c in args.courses
+            for v in args.variants for seed in range(args.first_seed, args.first_seed + args.seeds)
+            if record_path(records, c, v, seed).is_file()]
+    if held and getattr(args, 'resume', None) is None and not getattr(args, 'table_only', False):
+        raise ValueError(f'{records} already records {len(held)} trial(s) ({held[0][3]}, ...): '
+                         'pass --resume to keep them (trials that do not match are run again and '
+                         'their records replaced)')
     other = []
-    for c in args.courses:
-        for v in args.variants:
-            for seed in range(args.first_seed, args.first_seed + args.seeds):
-                f = record_path(records, c, v, seed)
-                if not f.is_file():
-                    continue
-                cmd = trial_command(args, c, COURSES[c], v, seed, out / c / v / f'seed{seed}')
-                try:
-                    ran = str(json.loads(f.read_text()).get('command', ''))
-                except (OSError, ValueError) as e:
-                    raise ValueError(f'record {f} cannot be read ({e})') from e
-                if not _same_command(ran, cmd):
-                    other.append((f, ran))
+    for c, v, seed, f in held:
+        cmd = trial_command(args, c, COURSES[c], v, seed, out / c / v / f'seed{seed}')
+        try:
+            ran = str(json.loads(f.read_text()).get('command', ''))
+        except (OSError, ValueError) as e:
+            raise ValueError(f'record {f} cannot be read ({e})') from e
+        if not _same_command(ran, cmd):
+            other.append((f, ran))
     if other:
         f, ran = other[0]
         raise ValueError(f'{records} holds {len(other)} record(s) of another terrain-demo command '
@@ -437,14 +440,6 @@ def run(args) -> dict:
             raise ValueError(f'{out} already holds {len(done)} finished trial(s) ({done[0]}, '
                              '...): pass --resume to keep them (trials that do not match are '
                              'moved aside and run again) or choose another --out')
-        records = getattr(args, 'records', None)
-        done = [str(record_path(records, c, v, s)) for c in args.courses for v in args.variants
-                for s in range(args.first_seed, args.first_seed + args.seeds)
-                if records is not None and record_path(records, c, v, s).is_file()]
-        if done:
-            raise ValueError(f'{records} already records {len(done)} trial(s) ({done[0]}, '
-                             '...): pass --resume to keep them (trials that do not match are '
-                             'run again and their records replaced)')
     _check_records(args, out)
     if not table_only:
         out.mkdir(parents=True, exist_ok=True)
