@@ -11,6 +11,7 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 
+from terrain_ros import timing
 from terrain_ros.env import apply_safe_defaults
 from terrain_ros.qos import RELIABLE_QOS
 
@@ -31,7 +32,9 @@ def run_node(node_cls: Type[Node], args=None, **kwargs) -> int:
     node = None
     try:
         node = node_cls(**kwargs)
-        rclpy.spin(node)
+        timing.install(node)
+        with timing.profiled(node):
+            rclpy.spin(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except ValueError as exc:
