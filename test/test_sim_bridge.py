@@ -252,3 +252,33 @@ def test_missing_course_file_is_a_clear_error(ros_context):
     with pytest.raises(ValueError, match='course_file'):
         SimBridgeNode(context=ros_context, parameter_overrides=[
             Parameter('course_file', value='/nonexistent/course.npz')])
+
+
+@pytest.mark.parametrize('waits', [True, False])
+def test_the_world_waits_while_the_simulator_renders(ros_context, executor, waits):
+    # A render is the simulator's cost, not the world's: with world_waits_for_render the
+    # wall time spent drawing is taken out of the real-time schedule (no catch-up burst of
+    # physics and state messages afterwards); without it the simulation catches up.
+    import time
+    rtf, delay = 0.5, 0.25
+    h = Harness(ros_context, executor, course_class='flat', real_time_factor=rtf,
+                camera_rate_hz=2.0, world_waits_for_render=waits)
+    render, spent = h.node.session.render, []
+
+    def slow_render():
+        w = time.monotonic()
+        time.sleep(delay)
+        cap = render()
+        spent.append(time.monotonic() - w)
+        return cap
+    h.node.session.render = slow_render
+    spin_until(h.ex, lambda: h.t > 0.0, 10.0)
+    t0, w0, n0 = h.t, time.monotonic(), len(spent)
+    spin_until(h.ex, lambda: False, 4.0)
+    sim, wall, drawn = h.t - t0, time.monotonic() - w0, sum(spent[n0:])
+    assert len(spent) - n0 >= 3 and drawn > 0.7
+    paced = rtf * (wall - drawn)     # simulated time the schedule allows outside the renders
+    if waits:
+        assert sim == pytest.approx(paced, abs=0.06)
+    else:
+        assert sim > paced + 0.5 * rtf * drawn
