@@ -54,7 +54,8 @@ def _edge_distance(grid, xy):
 class Harness:
     """Publishers of the node's inputs and recorders of its outputs."""
 
-    def __init__(self, ctx, executor, **params):
+    def __init__(self, ctx, executor, outputs=('points', 'coarse', 'disparity', 'plane'),
+                 **params):
         # A 9 px window for the 320x240 test camera (15 px is the default at 640x480).
         overrides = [Parameter('num_disparities', value=64), Parameter('block_size_px', value=9)]
         overrides += [Parameter(k, value=v) for k, v in params.items()]
@@ -76,12 +77,16 @@ class Harness:
                                       SENSOR_QOS),
                                      ('plane', GroundPlane, '/stereo/ground_plane',
                                       RELIABLE_QOS)):
-            self.io.create_subscription(typ, topic, lambda m, k=key: self.got[k].append(m), qos)
+            if key in outputs:
+                self.subscribe(key, typ, topic, qos)
         assert spin_until(executor, lambda: all(
             p.get_subscription_count() > 0 for p in (*self.pub.values(), *self.info.values())),
             5.0)
         assert spin_until(executor, lambda: self.node.pub_points.get_subscription_count() > 0,
                           5.0)
+
+    def subscribe(self, key, typ, topic, qos):
+        self.io.create_subscription(typ, topic, lambda m, k=key: self.got[k].append(m), qos)
 
     def send_info(self, stereo=STEREO, t=1.0):
         li, ri = stereo_to_camera_info(stereo, FRAME, t)
@@ -134,6 +139,29 @@ def test_published_pair_gives_a_cloud_on_the_true_surface(ros_context, executor,
     assert abs(plane.pitch - camera_pitch_from_pose(T_WORLD_CAM)) < np.radians(1.0)
     assert abs(plane.height - 0.5) < 0.01
     assert not h.node.counters.counts
+
+
+def test_ground_plane_and_disparity_are_computed_only_while_someone_listens(
+        ros_context, executor, scene):
+    grid, left, right, depth = scene
+    h = Harness(ros_context, executor, outputs=('points', 'coarse'))
+    h.send_info()
+    assert h.spin(lambda: h.node._info['right'] is not None, 5.0)
+    h.send_pair(left, right, 3.0)
+    assert h.spin(lambda: h.got['points'] and h.got['coarse'])
+    assert h.node.frames_processed == 1
+    assert h.node.planes_fitted == 0
+    assert h.node.pub_disparity.get_subscription_count() == 0
+    # A late subscriber gets the plane (and the disparity) from the next pair on.
+    h.subscribe('plane', GroundPlane, '/stereo/ground_plane', RELIABLE_QOS)
+    h.subscribe('disparity', DisparityImage, '/stereo/disparity', SENSOR_QOS)
+    assert h.spin(lambda: h.node.pub_plane.get_subscription_count() > 0
+                  and h.node.pub_disparity.get_subscription_count() > 0, 5.0)
+    h.send_pair(left, right, 4.0)
+    assert h.spin(lambda: h.got['plane'] and h.got['disparity'])
+    assert h.node.planes_fitted == 1
+    assert h.got['plane'][0].header.stamp == sec_to_stamp(4.0)
+    assert h.got['plane'][0].inlier_ratio > 0.3
 
 
 def test_capture_request_mode_processes_only_requested_pairs(ros_context, executor, scene):
