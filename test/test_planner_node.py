@@ -60,7 +60,7 @@ def _pose_T(x=0.0, y=0.0):
 
 
 class Harness:
-    def __init__(self, ctx, executor, **params):
+    def __init__(self, ctx, executor, patch_listener=True, **params):
         overrides = [Parameter(k, value=v) for k, v in params.items()]
         self.node = FootstepPlannerNode(context=ctx, parameter_overrides=overrides)
         self.io = Node('planner_test_io', context=ctx)
@@ -75,8 +75,9 @@ class Harness:
         self.pub_imu = self.io.create_publisher(Imu, '/imu/data', SENSOR_QOS)
         self.io.create_subscription(FootstepPlan, '/footstep_plan', self.plans.append,
                                     LATCHED_QOS)
-        self.io.create_subscription(ContactPatchArray, '/contact_patches', self.patches.append,
-                                    RELIABLE_QOS)
+        if patch_listener:
+            self.io.create_subscription(ContactPatchArray, '/contact_patches',
+                                        self.patches.append, RELIABLE_QOS)
         self.io.create_subscription(OccupancyGrid, '/map/cost_grid', self.costs.append,
                                     LATCHED_QOS)
         assert spin_until(executor, lambda: self.node.count_publishers('/map/filled') > 0
@@ -397,6 +398,44 @@ def test_cloud_and_imu_give_contact_patches_on_the_ground(ros_context, executor,
     assert plan.status == FootstepPlan.STATUS_OK, plan.status_text
     assert any(f.patch_index >= 0 for f in plan.footsteps)
     assert all(-1 <= f.patch_index < len(msg.patches) for f in plan.footsteps)
+
+
+def test_patches_feed_the_plan_without_a_listener_and_no_message_is_built(
+        ros_context, executor, monkeypatch):
+    # /contact_patches is built only for a subscriber (~20 ms of Python per capture that ran
+    # beside the terrain fill); the planner's own use of the patches does not depend on it.
+    import footstep_planner_node.node as planner_module
+    built = []
+    real = planner_module.patches_to_msg
+    monkeypatch.setattr(planner_module, 'patches_to_msg',
+                        lambda *a, **k: built.append(1) or real(*a, **k))
+    params = dict(QUADRUPED_PATCHES)
+    params['planner.horizon_steps'] = 8
+    params['patches_on_pose'] = False
+    h = Harness(ros_context, executor, patch_listener=False, **params)
+    T_map_base = _pose_T(0.0, 0.0)
+    h.pose(T_map_base)
+    hh = np.zeros((150, 150))
+    hh[93:100, 60:90] = 0.04
+    terrain = _grid(hh)
+    cam = ROBOT.camera
+    half = PinholeCamera(cam.width // 2, cam.height // 2, cam.fx / 2, cam.fy / 2,
+                         (cam.width // 2 - 1) / 2.0, (cam.height // 2 - 1) / 2.0)
+    pts = raycast_points(terrain, half, T_map_base @ ROBOT.T_base_camera)
+    imu = Imu()
+    imu.header.stamp.sec = 10
+    q = R_to_quat(T_map_base[:3, :3] @ ROBOT.T_base_imu[:3, :3])
+    imu.orientation.x, imu.orientation.y, imu.orientation.z, imu.orientation.w = q
+    h.pub_imu.publish(imu)
+    assert spin_until(executor, lambda: h.node.imu is not None, 5.0)
+    assert h.node.pub_patches.get_subscription_count() == 0
+    h.pub_cloud.publish(xyz_to_cloud(pts, 'camera_optical', 10.0))
+    assert spin_until(executor, lambda: h.node.patches_map is not None, 10.0)
+    assert len(h.node.patches_map) >= 50 and not built
+    plan = h.send_map(grid_to_msg(terrain), sec=10)
+    assert plan.status == FootstepPlan.STATUS_OK, plan.status_text
+    assert any(f.patch_index >= 0 for f in plan.footsteps)
+    assert not built
 
 
 def test_the_dry_run_reads_the_controllers_yaml(ros_context, executor, tmp_path):
