@@ -125,9 +125,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 # Per course: the simulated- and wall-time limits of a trial [s] by default (the limits the
 # table's trials have run with). FROG-I crossed the stones in 340-385 s of simulated time,
-# LittleDog rocks-6cm in 85-110 s; a trial takes about 5.2 s of wall time per simulated second.
+# LittleDog rocks-6cm in 85-110 s; a trial took about 5.2 s of wall time per simulated second,
+# 6.5 s since the world waits while the simulator renders (session 48): the rocks' 900 s still
+# hold 135 s simulated (records of earlier trials name 900 s: kept), the stones' limit was
+# raised from 2500 s (385 s simulated would now take 2,500 s) before any stones record.
 LIMITS = {'rocks-6cm': (200.0, 900.0), 'rocks-12cm': (200.0, 900.0),
-          'stones-15cm': (480.0, 2500.0)}
+          'stones-15cm': (480.0, 3300.0)}
 
 
 def limits(args, course: str) -> 'tuple[float, float]':
