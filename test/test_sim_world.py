@@ -319,6 +319,30 @@ def test_session_captures_at_the_camera_rate_and_on_request(session):
     np.testing.assert_allclose(cap.T_world_camera, session.robot.camera_pose())
 
 
+def test_a_periodic_capture_right_behind_a_requested_one_is_skipped(session):
+    # camera 4 Hz (period 0.25 s), periodic_min_gap 0.5: a periodic slot due within 0.125 s
+    # after a requested capture is a near-duplicate and skipped; one 0.15 s after is kept.
+    def run_until(t_end):
+        stamps = []
+        while session.t_s + session.dt_s < t_end - 1e-9:
+            session.step(1)
+            if session.capture_due():
+                stamps.append(round(session.render().stamp_s, 6))
+        return stamps
+    assert session.cfg.periodic_min_gap == 0.5
+    run_until(session.t_s + 0.6)        # serves any request an earlier test left pending
+    while not session.capture_due():                        # to the next periodic capture
+        session.step(1)
+    first = round(session.render().stamp_s, 6)
+    session.request_capture(first + 0.2)                    # 0.05 s before the next slot
+    got = run_until(first + 0.8)
+    np.testing.assert_allclose(got, [first + 0.2, first + 0.5, first + 0.75],
+                               atol=session.dt_s + 1e-9)    # first + 0.25 skipped
+    session.request_capture(got[-1] + 0.1)                  # 0.15 s before the next slot
+    got = run_until(got[-1] + 0.3)
+    np.testing.assert_allclose(got, [first + 0.85, first + 1.0], atol=session.dt_s + 1e-9)
+
+
 def test_scaled_camera_keeps_the_lens():
     from terrain_perception.sim.session import scaled_camera
     cam = PinholeCamera.from_fov(512, 480, 50.0)
