@@ -98,7 +98,12 @@ def install(node, directory: Optional[str] = None) -> Optional[TimingTrace]:
     if _TRACE is not None:   # one trace (one file) per process, named after its first node
         trace = _TRACE
     else:
-        trace = _TRACE = TimingTrace(Path(directory), node.get_name())
+        try:
+            trace = _TRACE = TimingTrace(Path(directory), node.get_name())
+        except OSError as exc:   # a diagnostic must not stop the node: run untraced
+            node.get_logger().error(f'{ENV_VAR}={directory!r} unusable ({exc}); no timing '
+                                    'trace')
+            return None
 
     def _take_subscription(self, sub):  # mirrors rclpy's Executor._take_subscription (Jazzy)
         try:

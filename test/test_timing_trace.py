@@ -96,6 +96,21 @@ def test_trace_records_takes_and_publishes_of_a_live_node(ros_context, executor,
     assert sum(1 for f in tmp_path.glob('*.jsonl') for _ in f.open()) == n
 
 
+def test_an_unusable_directory_leaves_the_node_untraced(ros_context, tmp_path):
+    from rclpy.executors import Executor
+    from rclpy.node import Node
+    blocker = tmp_path / 'a_file'
+    blocker.write_text('x')
+    node = Node('timing_bad_dir', context=ros_context)
+    take = Executor._take_subscription
+    try:
+        assert timing.install(node, str(blocker / 'trace')) is None
+        assert Executor._take_subscription is take
+    finally:
+        timing.uninstall()
+        node.destroy_node()
+
+
 def test_without_the_variable_nothing_is_installed(ros_context, monkeypatch):
     from rclpy.executors import Executor
     from rclpy.node import Node
