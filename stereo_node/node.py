@@ -276,9 +276,8 @@ class StereoNode(Node):
         return self.node_cfg.always_process or pub.get_subscription_count() > 0
 
     def _has_listeners(self) -> bool:
-        return self.node_cfg.always_process or any(
-            p.get_subscription_count() > 0
-            for p in (self.pub_disparity, self.pub_points, self.pub_coarse, self.pub_plane))
+        return any(self._wanted(p) for p in (self.pub_disparity, self.pub_points,
+                                             self.pub_coarse, self.pub_plane))
 
     def _camera(self, left: Image) -> Optional[StereoCamera]:
         li, ri = self._info['left'], self._info['right']
