@@ -176,6 +176,8 @@ def test_missing_bag_unknown_robot_and_non_bag_directory(tmp_path, capsys):
     assert 'not a rosbag2 directory' in _one_error_line(capsys.readouterr().err)
     assert pp.main([str(tmp_path), '--profile', 'everything']) == 2
     assert 'unknown stage' in _one_error_line(capsys.readouterr().err)
+    assert pp.main([str(tmp_path), '--profile-out', str(tmp_path / 'x.prof')]) == 2
+    assert '--profile-out needs --profile' in _one_error_line(capsys.readouterr().err)
 
 
 def test_mistyped_topic_is_named():
@@ -198,7 +200,9 @@ def test_every_stage_runs_once_per_capture_on_a_synthetic_bag(synthetic_bag, tmp
     env = dict(os.environ, OMP_NUM_THREADS='1', MKL_NUM_THREADS='3')
     env.pop('OPENBLAS_NUM_THREADS', None)
     env['OPENCV_FOR_THREADS_NUM'] = '2'
-    res = _tool(synthetic_bag, '--json', out, '--profile', 'icp', env=env)
+    stats = tmp_path / 'icp.prof'
+    res = _tool(synthetic_bag, '--json', out, '--profile', 'icp', '--profile-out', stats,
+                env=env)
     assert res.returncode == 0, res.stdout + res.stderr[-3000:]
     r = json.loads(out.read_text())
     counted = N_CAPTURES - 1
@@ -233,6 +237,12 @@ def test_every_stage_runs_once_per_capture_on_a_synthetic_bag(synthetic_bag, tmp
     assert 'critical chain stereo -> icp -> fill -> plan_map' in res.stdout
     assert 'cProfile of icp' in res.stdout and 'icp_mapper_node/node.py' in res.stdout
     assert '_align_and_publish' in res.stdout and 'stereo_node/node.py' not in res.stdout
+    # the stage's stats, for pstats / snakeviz: the counted captures' calls of icp only
+    import pstats
+    st = pstats.Stats(str(stats)).stats
+    calls = {f[2]: v[1] for f, v in st.items() if f[0].endswith('icp_mapper_node/node.py')}
+    assert calls['_align_and_publish'] == counted
+    assert not any(f[0].endswith('stereo_node/node.py') for f in st)
 
 
 @pytest.mark.graph

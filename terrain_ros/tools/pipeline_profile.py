@@ -2,6 +2,7 @@
 
     python -m terrain_ros.tools.pipeline_profile BAG [--captures N] [--warmup K]
         [--robot littledog|frog] [--library-height M] [--json PATH] [--profile STAGE]
+        [--profile-out PATH]
 
 ``BAG`` is a rosbag2 directory (mcap or sqlite3) as ``terrain-demo`` records into
 ``<run-dir>/bag`` (a run directory holding ``bag/`` is accepted too).
@@ -78,6 +79,8 @@ pipeline`` runs both settings.
 Output: a table (stage, calls, CPU ms per call median and p90, total, share of all counted CPU),
 CPU per capture and the chain. ``--profile STAGE`` adds cProfile's top 25 (cumulative) for that
 stage; only that stage is profiled and its timings include the profiler's overhead.
+``--profile-out PATH`` also writes that stage's combined stats (``python -m pstats PATH``,
+then ``sort tottime`` / ``stats 30``, or ``snakeviz PATH``).
 ``--json PATH`` writes the figures (keys: ``stages`` with ``calls``, ``median_ms``, ``p90_ms``,
 ``total_ms``, ``share``, ``kind``; ``chain``, ``chain_cpu_ms_median_sum``,
 ``chain_cpu_ms_per_capture_median``, ``cpu_ms_per_capture``, ``per_capture``, ``threads``,
@@ -172,6 +175,9 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument('--json', type=Path, default=None, help='write the figures here')
     p.add_argument('--profile', default=None, metavar='STAGE',
                    help=f'print cProfile\'s top 25 cumulative for one stage ({", ".join(STAGES)})')
+    p.add_argument('--profile-out', type=Path, default=None, metavar='PATH',
+                   help='with --profile: also write that stage\'s combined cProfile stats here '
+                        '(pstats format: python -m pstats PATH, snakeviz PATH)')
     return p
 
 
@@ -404,8 +410,10 @@ def _message_types() -> Dict[str, type]:
 
 
 def run_profile(bag: Path, reader, robot: Tuple[str, str], library_height: Tuple[float, str],
-                captures: int, warmup: int, profile_stage: Optional[str]) -> dict:
-    """Replay ``reader``'s bag through the four nodes; the figures of :func:`summarise`."""
+                captures: int, warmup: int, profile_stage: Optional[str],
+                profile_out: Optional[Path] = None) -> dict:
+    """Replay ``reader``'s bag through the four nodes; the figures of :func:`summarise`.
+    ``profile_out``: where to dump the profiled stage's combined cProfile stats."""
     from rclpy.serialization import deserialize_message
     from terrain_ros.conversions import peek_stamp, stamp_key
     types = _message_types()
@@ -546,6 +554,9 @@ def run_profile(bag: Path, reader, robot: Tuple[str, str], library_height: Tuple
                 stats = pstats.Stats(profs[0], stream=buf)
                 for p in profs[1:]:
                     stats.add(p)
+                if profile_out is not None:
+                    profile_out.parent.mkdir(parents=True, exist_ok=True)
+                    stats.dump_stats(str(profile_out))
                 stats.sort_stats('cumulative').print_stats(25)
                 profile_text = buf.getvalue()
             else:
@@ -689,6 +700,8 @@ def main(argv=None) -> int:
     try:
         if args.captures < 0 or args.warmup < 0:
             raise ProfileError('--captures and --warmup must be >= 0')
+        if args.profile_out is not None and args.profile is None:
+            raise ProfileError('--profile-out needs --profile STAGE')
         if args.profile is not None and args.profile not in STAGES:
             raise ProfileError(f'unknown stage {args.profile!r} for --profile '
                                f'(stages: {", ".join(STAGES)})')
@@ -703,7 +716,7 @@ def main(argv=None) -> int:
             robot = choose_robot(args.robot, reader, bag)
             height = choose_library_height(args.library_height, bag)
             result = run_profile(bag, reader, robot, height, args.captures, args.warmup,
-                                 args.profile)
+                                 args.profile, args.profile_out)
         finally:
             reader.close()
     except ToolError as exc:          # ProfileError, or terrain-bag's for an unreadable bag
