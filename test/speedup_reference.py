@@ -6,7 +6,7 @@ not changed). A speed-up must give the same output as its entry here: bitwise wh
 same arithmetic.
 """
 
-from typing import Dict
+from typing import Dict, Optional
 
 import numpy as np
 from scipy import ndimage
@@ -14,9 +14,13 @@ from scipy import ndimage
 from terrain_perception import gait as gaitlib
 from terrain_perception import kinematics
 from terrain_perception.body_path import belly_samples
+from terrain_perception.footsteps import (_ACROSS, _EMPTY_AREA, _SAME_SIDE, LF, LH, RF, RH,
+                                          _State, body_pose, flatness_cost, reachable,
+                                          stance_in_reach)
 from terrain_perception.features import (CostConfig, _check_heights, _sep, _window_kernels,
                                          window_cells)
 from terrain_perception.gait import _deepest_point, convex_order, support_margin
+from terrain_perception.grid import ELEVATION
 from terrain_perception.ground_plane import (GroundPlaneConfig, _lsq_plane, _three_distinct,
                                              plane_from_normal)
 from terrain_perception.robot_model import LEG_NAMES
@@ -312,3 +316,267 @@ def kolter_features(heights: np.ndarray, resolution_m: float,
     for name in ('slope', 'roughness', 'height_differential'):
         feats[name] = np.where(invalid, np.nan, feats[name])
     return feats
+
+
+# --- footstep planner (footsteps.py before session 49) --------------------------------------
+# unsafe_cells with scipy.ndimage (not OpenCV); the FootstepPlanner methods below take the
+# planner as ``self`` (set on the class by the test); _candidates reads self.patches[:2] (the
+# planner keeps (vertices, radii, largest radius) now), otherwise verbatim.
+
+def unsafe_cells(heights: np.ndarray, resolution_m: float, foot_radius_m: float,
+                 max_slope_deg: float = 30.0, rms_fraction: float = 0.5,
+                 window_m: float = 0.0) -> np.ndarray:
+    """Cells where a ball foot of radius ``rho = foot_radius_m`` [m] is unsafe: within the
+    square of half-side ``window_m`` (at least 2 cells; 0: ~2 rho) around the cell, the
+    heights' RMS deviation from their least-squares plane exceeds ``rms_fraction * rho`` (an
+    edge, a crack or a knob under the foot), or the plane is steeper than ``max_slope_deg`` (the
+    friction limit with margin). Unknown cells and windows
+    with unknown heights are not flagged (the caller masks unknown cells separately)."""
+    from scipy import ndimage
+    h = np.asarray(heights, dtype=np.float64)
+    if window_m > 0:
+        # at least 2 cells each side: a plane and its RMS fitted to 3 x 3 cells miss a roof's
+        # ridge (on the closed loop's 1 cm map this keeps the 5 x 5 window of 2 foot radii)
+        r = max(2, int(round(window_m / resolution_m)))
+    else:
+        r = max(1, int(round(2 * foot_radius_m / resolution_m)))
+    u = np.arange(-r, r + 1, dtype=np.float64)
+    n2 = float(len(u)) ** 2
+    box = np.ones_like(u)
+
+    def sep(a, k0, k1):
+        a = ndimage.correlate1d(a, k0, axis=0, mode='nearest')
+        return ndimage.correlate1d(a, k1, axis=1, mode='nearest')
+
+    m = sep(h, box, box) / n2
+    var = sep(h * h, box, box) / n2 - m * m
+    su2 = float(np.mean(u * u))
+    cu, cv = sep(h, u, box) / n2, sep(h, box, u) / n2
+    rms = np.sqrt(np.maximum(var - (cu * cu + cv * cv) / su2, 0.0))
+    slope = np.hypot(cu, cv) / su2 / resolution_m
+    with np.errstate(invalid='ignore'):
+        return (rms > rms_fraction * foot_radius_m) | (slope > np.tan(np.radians(max_slope_deg)))
+
+
+def fs_area(self, foot_u: float, nom_u: float, nom_v: float, wL: float, A: float,
+          lateral_m: Optional[float] = None, ground_z: Optional[float] = None):
+    """Search area of one leg: along-track [foot + min_step, nominal + wL + 2A] (capped by the
+    max step length), across-track nominal +- ``lateral_m`` (default lateral_search).
+    ``ground_z`` (the stance's height) lets ``stride_centre: adaptive`` test the area's
+    flatness; without it 'adaptive' centres as 'capped'. Returns (u, v, centre_u)."""
+    res = self.grid.resolution_m
+    lo = foot_u + self.cfg.min_step_m
+    rule_hi = nom_u + wL + 2.0 * A
+    hi = min(rule_hi, foot_u + self.robot.max_step_length_m)
+    hi = max(hi, lo)
+    us = np.arange(lo, hi + 0.5 * res, res) if hi > lo else np.array([lo])
+    w = self.cfg.lateral_search_m if lateral_m is None else lateral_m
+    vs = nom_v + np.arange(-w, w + 0.5 * res, res) if w > 0 else np.array([nom_v])
+    U, V = np.meshgrid(us, vs, indexing='ij')
+    u, v = U.ravel(), V.ravel()
+    centre = 0.5 * (lo + hi)
+    mode = self.cfg.stride_centre
+    if mode == 'rule' or (mode == 'adaptive' and ground_z is not None
+                          and self._area_flat(u, v, ground_z)):
+        centre = min(0.5 * (lo + max(rule_hi, lo)), hi)
+    return u, v, centre
+
+
+def fs_area_flat(self, u: np.ndarray, v: np.ndarray, ground_z: float) -> bool:
+    """Shao's flatness test (paper 002 Fig. 4) on the cells at along/across-track ``u, v``:
+    all observed and ``|h - ground_z| + Dev(h) < trot_threshold_m``."""
+    ij, inside = self._cells(self._to_map(u, v))
+    h = self.grid[ELEVATION][ij[:, 0], ij[:, 1]]
+    if not np.all(inside & np.isfinite(h)):
+        return False
+    fc = flatness_cost(h, ground_z, self._dev_at(ij))
+    return bool(np.all(fc < self.cfg.trot_threshold_m))
+
+#: half-width [cells] of the window of Shao's Dev computed at a time (the search areas of
+#: one plan lie within a few tens of cells of each other)
+_DEV_WINDOW = 40
+
+
+def fs_area_cells(self, state: _State, leg: int, fu0: np.ndarray, wL0: float, A: float,
+                Tb: np.ndarray, lateral_m: float):
+    """The cells of ``leg``'s search area (half-width ``lateral_m``) that are allowed, keep
+    the stance within the spread limits and are in reach from the body pose ``Tb``: ``(points
+    (k, 3), u, v, cells (k, 2), area centre u)``, or ``(None, why not)``."""
+    cfg, g = self.cfg, self.grid
+    u, v, centre = self._area(fu0[leg], self.nom_u[leg], self.nom_v[leg], wL0, A,
+                              lateral_m, float(np.mean(state.feet[:, 2])))
+    xy = self._to_map(u, v)
+    ij, inside = self._cells(xy)
+    ok = inside & self.allowed[ij[:, 0], ij[:, 1]]
+    # A step back onto the foot's own cell is no step.
+    ok &= np.hypot(*(xy - state.feet[leg, :2]).T) >= 0.75 * g.resolution_m
+    if not np.any(ok):
+        return None, _EMPTY_AREA
+    fu, fv = self._uv(state.feet)        # the stance along / across the walking line
+    if cfg.max_leg_spread_m > 0:
+        # No foot further ahead of its nominal place than the rearmost other foot by more
+        # than the spread: a foot left behind (an obstacle in its area) holds the others
+        # back instead of ending up out of reach once the COG has moved on.
+        lag = np.delete(fu - self.nom_u, leg)
+        ok &= u - self.nom_u[leg] <= lag.min() + cfg.max_leg_spread_m
+        if not np.any(ok):
+            return None, (f'its search area {cfg.max_leg_spread_m} m or more ahead of the '
+                          'rearmost other foot')
+    # The stance's length along the walking line, front foot to the hind foot on its side,
+    # as a share of the nominal spacing: at least min_stance_length (a hind foot closing up
+    # on a blocked front foot leaves a support polygon too short), at most
+    # max_stance_length (a hind foot left far behind cannot swing within reach).
+    mate = _SAME_SIDE[leg]
+    spacing = abs(self.nom_u[mate] - self.nom_u[leg])
+    hind = leg in (LH, RH)
+    if cfg.min_stance_length > 0:
+        gap = cfg.min_stance_length * spacing
+        ok &= (u <= fu[mate] - gap) if hind else (u >= fu[mate] + gap)
+        if not np.any(ok):
+            return None, (f'no cell of its search area keeps the stance {gap:.3f} m long '
+                          f'(the {LEG_NAMES[mate]} foot)')
+    if cfg.max_stance_length > 0:
+        span = cfg.max_stance_length * spacing
+        ok &= (u >= fu[mate] - span) if hind else (u <= fu[mate] + span)
+        if not np.any(ok):
+            return None, (f'no cell of its search area keeps the stance within {span:.3f} m '
+                          f'(the {LEG_NAMES[mate]} foot)')
+    # The stance's width across the walking line, this foot to the other foot of its pair,
+    # as a share of the nominal width: at least min_stance_width (a left foot stays left of
+    # its pair's right foot by it; feet together under the body roll the robot over), at
+    # most max_stance_width (spread wider, no body pose keeps every foot in reach).
+    mate = _ACROSS[leg]
+    width = abs(self.nom_v[mate] - self.nom_v[leg])
+    if cfg.min_stance_width > 0:
+        gap = cfg.min_stance_width * width
+        ok &= (v >= fv[mate] + gap) if self.nom_v[leg] > self.nom_v[mate] else \
+            (v <= fv[mate] - gap)
+        if not np.any(ok):
+            return None, (f'no cell of its search area keeps the stance {gap:.3f} m wide '
+                          f'(the {LEG_NAMES[mate]} foot)')
+    if cfg.max_stance_width > 0:
+        span = cfg.max_stance_width * width
+        ok &= np.abs(v - fv[mate]) <= span
+        if not np.any(ok):
+            return None, (f'no cell of its search area keeps the stance within {span:.3f} m '
+                          f'wide (the {LEG_NAMES[mate]} foot)')
+    xy, u, v, ij = xy[ok], u[ok], v[ok], ij[ok]
+    z = g[ELEVATION][ij[:, 0], ij[:, 1]].astype(np.float64)
+    pts = np.c_[xy, z]
+    reach = reachable(self.robot, Tb, pts, np.full(len(pts), leg), cfg.reach_fraction)
+    if not np.any(reach):
+        return None, 'no cell of its search area is within reach'
+    pts, u, v, ij = pts[reach], u[reach], v[reach], ij[reach]
+    return pts, u, v, ij, centre
+
+
+def fs_candidates(self, state: _State, leg: int, feet0: np.ndarray, wL0: float, A: float,
+                Tb: np.ndarray):
+    """Scored candidate footholds of ``leg`` (in its period's search area)."""
+    cfg = self.cfg
+    fu0, _ = self._uv(feet0)
+    found = self._area_cells(state, leg, fu0, wL0, A, Tb, cfg.lateral_search_m)
+    wide = cfg.blocked_lateral_search_m
+    if wide > cfg.lateral_search_m and (
+            found[0] is None or np.max(found[1]) < fu0[leg] + 0.5 * A):
+        # Blocked: nothing half a stride ahead in the leg's lane (typically a rock filling
+        # it). Inching up to the obstacle only lets the other legs close up on this one, so
+        # search around it; the nominal-distance cost still prefers the lane.
+        more = self._area_cells(state, leg, fu0, wL0, A, Tb, wide)
+        if more[0] is None and more[1] == _EMPTY_AREA and leg in (LH, RH) and \
+                cfg.empty_lane_lateral_search_m > wide:
+            # A hind foot with not one foothold in the wider search either (unseen ground,
+            # the start's blind area): wider still, to the cells beside the lane that the
+            # front feet stood on. Not a front foot: ahead of it nothing was stood on.
+            more = self._area_cells(state, leg, fu0, wL0, A, Tb,
+                                    cfg.empty_lane_lateral_search_m)
+        if more[0] is not None and (found[0] is None or np.max(more[1]) > np.max(found[1])):
+            found = more
+    if found[0] is None:
+        return None, found[1]
+    pts, u, v, ij, centre = found
+    # The stance's heading after the step (hind feet's midpoint to the front feet's, as
+    # the controller sets the body's yaw), against the plan's: a front foot stepping 6 cm
+    # round a rock turns it 8 deg, and such steps added up to 60 deg on rocks-12cm (seed 0)
+    # while each plan turned back by max_turn_rad only.
+    err = self._heading_error(state.feet, leg, u, v)
+    if cfg.max_heading_error_rad > 0:
+        err0 = abs(float(self._heading_error(state.feet, leg, *self._uv(
+            state.feet[leg:leg + 1]))[0]))
+        keep = (np.abs(err) <= cfg.max_heading_error_rad) | (np.abs(err) <= err0 + 1e-9)
+        if not np.any(keep):
+            return None, (f'no foothold keeps the stance within '
+                          f'{np.degrees(cfg.max_heading_error_rad):.0f} deg of the heading')
+        pts, u, v, ij, err = pts[keep], u[keep], v[keep], ij[keep], err[keep]
+    cost = self.cost[ij[:, 0], ij[:, 1]]
+    omega = (cfg.distance_weight_gain * ((u - centre) ** 2 + (v - self.nom_v[leg]) ** 2)
+             + A) / max(A, 1e-9)
+    dz = np.abs(pts[:, 2] - float(np.mean(state.feet[:, 2])))
+    # Distance from the stride-rule foothold (the area centre, paper 002 Fig. 4).
+    d2 = (u - centre) ** 2 + (v - self.nom_v[leg]) ** 2
+    short = np.maximum(centre - u, 0.0)
+    J = omega * (np.maximum(cost, 0.0) + cfg.cost_offset + cfg.step_height_weight_per_m * dz
+                 + cfg.nominal_weight_per_m2 * d2 + cfg.shortfall_weight_per_m2 * short ** 2
+                 + cfg.heading_weight_per_rad2 * err ** 2)
+    pidx = np.full(len(pts), -1)
+    if self.patches is not None and cfg.patch_bonus > 0:
+        pv, pr = self.patches[:2]
+        d = np.linalg.norm(pts[:, None, :2] - pv[None, :, :2], axis=2) - pr[None]
+        near = np.argmin(d, axis=1)
+        hit = d[np.arange(len(pts)), near] <= 0
+        pidx = np.where(hit, near, -1)
+        J = np.where(hit, J * (1.0 - cfg.patch_bonus), J)
+    if cfg.selection == 'nominal':
+        J = omega
+    elif cfg.selection == 'random':
+        J = self._rng.random(len(J))
+    order = np.argsort(J, kind='stable')[:cfg.candidates_per_step]
+    return (pts[order], cost[order], J[order], pidx[order]), ''
+
+
+def fs_heading_error(self, feet: np.ndarray, leg: int, u: np.ndarray,
+                   v: np.ndarray) -> np.ndarray:
+    """Heading of the stance ``feet`` with ``leg`` moved to each ``(u, v)`` (plan frame):
+    the direction from the hind feet's midpoint to the front feet's, relative to the
+    plan's heading [rad]."""
+    fu, fv = self._uv(feet)
+    FU = np.repeat(fu[None], len(u), axis=0)
+    FV = np.repeat(fv[None], len(u), axis=0)
+    FU[:, leg], FV[:, leg] = u, v
+    du = FU[:, [LF, RF]].mean(axis=1) - FU[:, [LH, RH]].mean(axis=1)
+    dv = FV[:, [LF, RF]].mean(axis=1) - FV[:, [LH, RH]].mean(axis=1)
+    return np.arctan2(dv, du)
+
+
+def fs_body_in_reach(self, body_xy, feet, yaw) -> Optional[np.ndarray]:
+    """Body pose over ``feet`` at ``body_xy`` with every foot in reach: standing height
+    first, then crouching (posture adjustment) down to ``min_crouch`` of it. With
+    ``belly_clearance_m`` the body box's underside stays that far above the map: the
+    body crouches no lower than that, and rises above the standing height when a rock
+    under it needs it; None (``_belly_blocked`` set) when the legs cannot reach then."""
+    h = self.robot.standing_height_m
+    levels = np.linspace(1.0, self.cfg.min_crouch, 4)
+    T = body_pose(body_xy, feet, yaw, self.robot)
+    self._belly_blocked = False
+    need = self._belly_need(T)
+    if need > 0.0:
+        levels = np.array([1.0 + need / h])
+    elif np.isfinite(need):
+        levels = levels[(1.0 - levels) * h <= -need]
+    p = (feet + [0.0, 0.0, self.robot.foot_radius_m] - T[:3, 3]) @ T[:3, :3]
+    # Lowering the base by dh along its own z raises every foot by dh in base_link.
+    drop = (1.0 - levels) * h
+    P = p[None] + drop[:, None, None] * np.array([0.0, 0.0, 1.0])
+    # Distance check for all heights at once; IK level by level, usually one call.
+    near = np.all(np.linalg.norm(P - np.array(self.robot.leg_plane_offsets), axis=-1)
+                  <= self.cfg.reach_fraction * self.robot.leg_length_m, axis=1)
+    k = next((int(i) for i in np.nonzero(near)[0]
+              if stance_in_reach(self.robot, P[i:i + 1], self.cfg.reach_fraction).all()),
+             None)
+    if k is None:
+        self._belly_blocked = need > 0.0 or len(levels) < 4
+        return None
+    self._last_crouch = float(levels[k])
+    T = T.copy()
+    T[:3, 3] -= drop[k] * T[:3, 2]
+    return T

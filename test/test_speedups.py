@@ -380,6 +380,86 @@ def test_check_footsteps_equals_the_previous_code(dry_run_cases):
             np.testing.assert_array_equal(x, y)
 
 
+# --- the footstep planner's search (footsteps.py) --------------------------------------------
+def test_unsafe_cells_equal_the_previous_code(walk):
+    """OpenCV's separable filter instead of scipy's correlate1d: the same cells flagged on the
+    fill walk's moving maps (mostly unknown), on rock fields with unknown cells, and on the
+    foot's resting surface of both, for the planner's windows and thresholds."""
+    from terrain_perception.footsteps import foot_surface, unsafe_cells
+    maps = [np.asarray(g[ELEVATION], np.float64) for g, _, _ in walk[::2]]
+    maps += [np.asarray(_rock_grid(seed)[ELEVATION], np.float64) for seed in (0, 1, 2)]
+    maps += [foot_surface(h, 0.01, 0.012) for h in maps]
+    flagged = 0
+    for h in maps:
+        for radius, slope, frac, window in ((0.012, 30.0, 0.5, 0.0), (0.012, 25.5, 0.425, 0.0),
+                                            (0.025, 30.0, 0.5, 0.02), (0.004, 20.0, 0.3, 0.0)):
+            new = unsafe_cells(h, 0.01, radius, slope, frac, window)
+            old = ref.unsafe_cells(h, 0.01, radius, slope, frac, window)
+            np.testing.assert_array_equal(new, old)
+            flagged += int(old.sum())
+    assert flagged > 1000                      # the comparison covers flagged cells
+
+
+def _patched_planner_methods(m):
+    from terrain_perception.footsteps import FootstepPlanner
+    for name in ('_area', '_area_flat', '_area_cells', '_candidates', '_heading_error',
+                 '_body_in_reach'):
+        m.setattr(FootstepPlanner, name, getattr(ref, 'fs' + name))
+
+
+def _plans(cases, planner_config):
+    from terrain_perception import footsteps as fs
+    from terrain_perception.features import cost_map
+    rm = load_robot_model('littledog')
+    out = []
+    for seed, poses, patches in cases:
+        g = _rock_grid(seed)
+        g['cost'] = cost_map(np.asarray(g[ELEVATION], np.float64), g.resolution_m)
+        planner = fs.FootstepPlanner(rm, planner_config)
+        assert planner.set_map(g) is None
+        for T in poses:
+            plan = planner.plan(T, patches=patches)
+            out.append((plan.status, plan.status_text, plan.gait,
+                        [(s.leg, s.position.tolist(), s.cost, s.step_index, s.patch_index,
+                          s.body_xy.tolist(), s.body_height_m) for s in plan.footsteps]))
+    return out
+
+
+@pytest.mark.parametrize('centre', ['adaptive', 'rule'])
+def test_planner_search_equals_the_previous_code(centre):
+    """The beam search's helpers after session 49's speed-ups (the search area's cells found
+    once for the flatness test and the candidates, a stance's heading without per-candidate
+    copies, patches boxed to the area before the distance test, the crouch levels cached): the
+    same plans, footstep by footstep, bitwise, on rock fields from several poses and headings,
+    with and without contact patches."""
+    from terrain_perception import footsteps as fs
+    rm = load_robot_model('littledog')
+    rng = np.random.default_rng(12)
+    cases = []
+    for seed in (0, 1, 2):
+        poses = []
+        for x0, y0, yaw in ((-0.3, 0.0, 0.0), (0.0, 0.05, 0.3), (0.1, -0.1, -0.4),
+                            (-0.2, 0.1, 3.0)):
+            T = np.eye(4)
+            T[:2, :2] = [[np.cos(yaw), -np.sin(yaw)], [np.sin(yaw), np.cos(yaw)]]
+            T[:3, 3] = [x0, y0, rm.standing_height_m]
+            poses.append(T)
+        # patches: everywhere on the field (most far from any search area), radii 5-15 mm
+        pv = np.c_[rng.uniform(-0.75, 0.75, (300, 2)), rng.uniform(0.0, 0.05, 300)]
+        pr = rng.uniform(0.005, 0.015, 300)
+        cases.append((seed, poses, None))
+        cases.append((seed, poses, (pv, pr)))
+    cfg = fs.PlannerConfig(horizon_steps=8, stride_centre=centre)
+    new = _plans(cases, cfg)
+    with pytest.MonkeyPatch.context() as m:
+        _patched_planner_methods(m)
+        old = _plans(cases, cfg)
+    assert new == old
+    steps = [s for _, _, _, st in old for s in st]
+    assert sum(st[0] == fs.STATUS_OK for st in old) >= 16 and len(steps) >= 100
+    assert sum(s[4] >= 0 for s in steps) >= 10          # footholds on patches compared too
+
+
 # --- terrain features ------------------------------------------------------------------------
 def test_kolter_features_equal_the_previous_code(walk):
     """The plane fitted only under cells of known height: every feature as before on the fill
