@@ -67,8 +67,8 @@ _LOG = logging.getLogger(__name__)
 
 
 def _load_kernels():
-    """The compiled choice step (terrain_perception._fill_kernels), or None for the numpy
-    code (``TERRAIN_FILL_NUMBA=0``, or numba missing: logged once)."""
+    """The compiled choice step and viewshed (terrain_perception._fill_kernels), or None for
+    the numpy code (``TERRAIN_FILL_NUMBA=0``, or numba missing: logged once)."""
     return load_compiled('_fill_kernels', 'TERRAIN_FILL_NUMBA', 'Fill-Terrain', _LOG)
 
 
@@ -76,9 +76,10 @@ _kernels = _load_kernels()
 
 
 def use_compiled_kernels(enabled: Optional[bool] = True) -> bool:
-    """Select the compiled choice step (``True``), the numpy code (``False``) or the default
-    (``None``) for the following fills, process-wide; returns whether compiled is on. Both
-    give bitwise the same fills."""
+    """Select the compiled choice step and viewshed (``True``), the numpy code (``False``) or
+    the default (``None``) for the following fills and bounds, process-wide; returns whether
+    compiled is on. Both give bitwise the same bounds, and fills equal within rounding (the
+    same library samples; see terrain_perception._fill_kernels.choose_block)."""
     global _kernels
     if enabled is None:
         _kernels = _load_kernels()
@@ -370,7 +371,8 @@ def bounds_from_captures(heights: np.ndarray, resolution_m: float, origin_xy: Se
     cos_fov = np.cos(fov_half_angle_rad)
     rr = np.arange(1, int(np.ceil(max_range_m / (range_step_cells * resolution_m))) + 1) \
         * range_step_cells * resolution_m
-    hflat = h.ravel()
+    hflat = np.ascontiguousarray(h).ravel()
+    tgt_flat = np.ascontiguousarray(tgt).ravel()
     bound = np.full(nx * ny, np.inf)
     for k, c in enumerate(cams):
         if not np.isfinite(c).all():
@@ -385,6 +387,15 @@ def bounds_from_captures(heights: np.ndarray, resolution_m: float, origin_xy: Se
             az = az[best >= cos_fov - 1e-9]
             if az.size == 0:
                 continue
+        if _kernels is not None:
+            # the same per-sample arithmetic, ray by ray (bitwise equal; _fill_kernels)
+            ax = axes[k] if axes is not None else np.zeros(3)
+            _kernels.viewshed_bounds(hflat, nx, ny, float(o_xy[0]), float(o_xy[1]),
+                                     float(resolution_m), np.ascontiguousarray(c),
+                                     np.cos(az), np.sin(az), rr, float(tol_m),
+                                     float(max_range_m), axes is not None,
+                                     np.ascontiguousarray(ax), float(cos_fov), tgt_flat, bound)
+            continue
         x = c[0] + np.cos(az)[:, None] * rr[None, :]              # (n_az, n_r)
         y = c[1] + np.sin(az)[:, None] * rr[None, :]
         i = np.floor((x - o_xy[0]) / resolution_m).astype(np.int64)
@@ -506,7 +517,8 @@ def gaussian_weights(w: int, sigma_cells: float) -> np.ndarray:
 # Fill-Terrain
 # --------------------------------------------------------------------------------------------
 def select_round(known: np.ndarray, rank: np.ndarray, w: int,
-                 todo: Optional[np.ndarray] = None) -> np.ndarray:
+                 todo: Optional[np.ndarray] = None,
+                 box: Optional[np.ndarray] = None) -> np.ndarray:
     """Flat indices (ascending) of the cells filled in this round (see module docstring).
 
     A missing cell is selected when its key ``known_count * N + rank`` (N = cells in the map)
@@ -514,7 +526,16 @@ def select_round(known: np.ndarray, rank: np.ndarray, w: int,
     window wait. ``todo`` (bool, optional) limits the candidates: other missing cells are left
     unknown and neither compete nor count as known. Works on the bounding box of the
     candidates plus the window margin; empty when no candidate has a known neighbour.
+    ``box`` (optional int64 (4,), compiled code only): rows i0:i1, columns j0:j1 holding every
+    candidate, tightened in place (fill_terrain passes the last round's).
     """
+    if _kernels is not None:
+        out = np.empty(known.size, np.int64)
+        if box is None:
+            box = np.array([0, known.shape[0], 0, known.shape[1]], np.int64)
+        n = _kernels.select_round(known, known if todo is None else todo, todo is not None,
+                                  rank, int(w), box, out)
+        return out[:n]
     import cv2
     nx, ny = known.shape
     r = w // 2
@@ -640,8 +661,9 @@ def fill_terrain(heights: np.ndarray, upper_bound: Optional[np.ndarray],
     rounds = 0
     n = int(config.samples)
     per_block = max(1, int(config.batch_cells))
+    box = np.array([0, nx, 0, ny], np.int64)      # where candidates can still be
     while not known.all() if todo is None else (todo & ~known).any():
-        sel = select_round(known, rank, w, todo)
+        sel = select_round(known, rank, w, todo, box)
         if sel.size == 0:            # only masked cells without any context are left
             break
         rounds += 1
@@ -650,10 +672,17 @@ def fill_terrain(heights: np.ndarray, upper_bound: Optional[np.ndarray],
         corner = si * nyp + sj                      # window corner in padded coordinates
         for a in range(0, len(sel), per_block):
             blk = slice(a, a + per_block)
-            idx = corner[blk, None] + offs[None, :]
             g = lib.positions(u[blk])
-            C = lib.patches(g)
-            hbest, k = _choose(Hpf[idx], Kpf[idx], Upf[idx], C, W)
+            if _kernels is not None and lib.bank is not None:
+                # compiled: windows and samples read in place (equal to _choose within
+                # rounding; _fill_kernels.choose_block)
+                hbest = np.empty(len(g))
+                k = np.empty(len(g), np.int64)
+                _kernels.choose_block(Hpf, Kpf, Upf, corner[blk], offs, lib.bank, g, W,
+                                      hbest, k)
+            else:
+                idx = corner[blk, None] + offs[None, :]
+                hbest, k = _choose(Hpf[idx], Kpf[idx], Upf[idx], lib.patches(g), W)
             cells = sel[blk]
             ci, cj = si[blk], sj[blk]
             Hpf[(ci + r) * nyp + cj + r] = hbest

@@ -194,8 +194,9 @@ def test_fill_node_pose_conversion_equals_the_previous_code(ros_context, walk):
 
 
 def test_fill_kernel_equals_the_numpy_choice_on_a_walk(walk):
-    """The compiled choice step (TERRAIN_FILL_NUMBA, the default) against the numpy code it
-    replaces, kept in fill._choose: the whole walk, bitwise."""
+    """The compiled fill (TERRAIN_FILL_NUMBA, the default: _fill_kernels.choose_block and
+    viewshed_bounds) against the numpy code it replaces: the filler's layers over the whole
+    walk, bitwise (the layers are float32; the float64 fills themselves: the next test)."""
     try:
         fillmod.use_compiled_kernels(True)
         new = run_filler(walk, feet_every=3)
@@ -208,6 +209,178 @@ def test_fill_kernel_equals_the_numpy_choice_on_a_walk(walk):
         assert (ra, na) == (rb, nb)
         for name in a:
             np.testing.assert_array_equal(a[name], b[name], err_msg=name)
+
+
+
+def test_viewshed_kernel_equals_the_numpy_bounds(walk):
+    """The compiled viewshed (bounds_from_captures' rays) against its numpy code: the walk's
+    maps with each capture and with all captures so far, with and without the view cone, with
+    a tolerance, a camera over the map's edge and one outside it: bitwise."""
+    from terrain_perception.fill import bounds_from_captures
+    cases = 0
+    for k, (grid, T, _) in enumerate(walk):
+        h = np.asarray(grid[ELEVATION], np.float64)
+        poses = np.array([t for _, t, _ in walk[:k + 1]])
+        cams, axes = poses[:, :3, 3], poses[:, :3, 2]
+        edge = np.array([[grid.origin_xy[0], grid.origin_xy[1] + 0.5, 0.3],
+                         [grid.origin_xy[0] - 0.4, grid.origin_xy[1] + 1.0, 0.25]])
+        for cam, ax, kw in ((cams[-1:], axes[-1:], {}), (cams, axes, dict(tol_m=0.003)),
+                            (cams[-1:], None, {}),
+                            (np.r_[cams[-1:], edge], np.r_[axes[-1:], [[1, 0, -1]] * 2],
+                             dict(angular_step_rad=0.01))):
+            fov = np.radians(fillmod.RayConfig().fov_half_angle_deg)
+            args = (h, grid.resolution_m, grid.origin_xy, cam, 1.0)
+            kwargs = dict(kw, camera_axes=ax, fov_half_angle_rad=fov if ax is not None
+                          else np.pi)
+            try:
+                fillmod.use_compiled_kernels(True)
+                new = bounds_from_captures(*args, **kwargs)
+                fillmod.use_compiled_kernels(False)
+                old = bounds_from_captures(*args, **kwargs)
+            finally:
+                fillmod.use_compiled_kernels(None)
+            assert new.tobytes() == old.tobytes()
+            cases += int(np.isfinite(old).sum() > 100)
+    assert cases >= 30
+
+
+def test_compiled_fill_chooses_the_numpy_samples_on_a_walk(walk):
+    """fill_terrain with the compiled choice (choose_block: one pass over each window's known
+    cells, straight from the patch bank) against numpy's _choose (BLAS sums of an expansion):
+    the arithmetic differs, so the float64 heights agree within rounding, and on the walk's
+    maps under their captures' bounds every filled cell takes the same library sample."""
+    from terrain_perception.fill import PatchLibrary, bounds_from_captures, fill_terrain
+    lib = PatchLibrary(fill_library(), 5)
+    filled = bounded = 0
+    for k, (grid, T, _) in enumerate(walk):
+        h = np.asarray(grid[ELEVATION], np.float64)
+        poses = np.array([t for _, t, _ in walk[:k + 1]])
+        ub = bounds_from_captures(h, grid.resolution_m, grid.origin_xy, poses[:, :3, 3], 1.0,
+                                  camera_axes=poses[:, :3, 2],
+                                  fov_half_angle_rad=np.radians(40.0))
+        mask = np.zeros(h.shape, bool)
+        mask[60:240, 60:240] = True
+        try:
+            fillmod.use_compiled_kernels(True)
+            new = fill_terrain(h, ub, lib, fill_mask=mask)
+            fillmod.use_compiled_kernels(False)
+            old = fill_terrain(h, ub, lib, fill_mask=mask)
+        finally:
+            fillmod.use_compiled_kernels(None)
+        np.testing.assert_array_equal(new.filled, old.filled)
+        assert new.rounds == old.rounds
+        f = old.filled
+        np.testing.assert_array_equal(new.choice[f], old.choice[f])
+        np.testing.assert_allclose(new.heights[f], old.heights[f], rtol=0, atol=1e-12)
+        filled += int(f.sum())
+        bounded += int((f & np.isfinite(ub)).sum())
+    assert filled > 20000 and bounded > 2000
+
+
+def test_select_round_kernel_equals_the_numpy_rounds():
+    """The compiled round selection against the OpenCV box filter and dilation: every round
+    of whole fills (the selected cells then known, the box carried from round to round as
+    fill_terrain does), with and without a todo mask, holes at the map's edges, windows 3-7:
+    the same cells in the same order."""
+    rng = np.random.default_rng(6)
+    rounds = 0
+    for shape, w, p in (((60, 80), 5, 0.5), ((300, 300), 5, 0.02), ((40, 40), 3, 0.7),
+                        ((50, 30), 7, 0.3)):
+        from scipy import ndimage
+        holes = ndimage.binary_dilation(rng.random(shape) < p * 0.05, iterations=3)
+        holes[:, :4] |= rng.random((shape[0], 4)) < 0.5                  # at the edge
+        rank = rng.permutation(holes.size).reshape(shape)
+        for todo in (None, rng.random(shape) < 0.7):
+            known_new, known_old = ~holes, ~holes.copy()
+            box = np.array([0, shape[0], 0, shape[1]], np.int64)
+            while True:
+                try:
+                    fillmod.use_compiled_kernels(True)
+                    new = fillmod.select_round(known_new, rank, w, todo, box)
+                    fillmod.use_compiled_kernels(False)
+                    old = fillmod.select_round(known_old, rank, w, todo)
+                finally:
+                    fillmod.use_compiled_kernels(None)
+                np.testing.assert_array_equal(new, old)
+                if old.size == 0:
+                    break
+                rounds += 1
+                known_new.ravel()[new] = True
+                known_old.ravel()[old] = True
+            want = ~known_old if todo is None else todo & ~known_old
+            assert not want.any() or todo is not None          # only masked, contextless left
+    assert rounds > 100
+
+
+def _block_inputs(A, B, Abar, C):
+    """A block of _choose's inputs laid out as choose_block reads them (one window per cell
+    in a flat 'padded map', one bank row per sample)."""
+    S, n, q = C.shape
+    return (np.ascontiguousarray(np.where(B, A, 0.0)).ravel(), np.ascontiguousarray(B).ravel(),
+            np.ascontiguousarray(Abar).ravel(), np.arange(S, dtype=np.int64) * q,
+            np.arange(q, dtype=np.int64), np.ascontiguousarray(C).reshape(S * n, q),
+            np.arange(S * n, dtype=np.int64).reshape(S, n))
+
+
+def test_choose_block_kernel_on_ties_nan_and_inf():
+    """choose_block against numpy's _choose on the adversarial block of the previous test
+    (ties in s, NaN/-inf bounds, cells with no feasible sample): the same sample where
+    numpy's least error is unique by more than rounding, else a sample tied with it within
+    rounding (and feasible where one is); the heights within rounding where the sample is
+    the same; NaN rows as numpy's argmin takes them."""
+    from terrain_perception import _fill_kernels
+    rng = np.random.default_rng(4)
+    S, n, q = 40, 30, 25
+    W = fillmod.gaussian_weights(5, 1.5).ravel()
+    A = rng.normal(0, 0.01, (S, q))
+    B = rng.random((S, q)) < 0.6
+    B[:, 0] = True
+    C = np.round(rng.normal(0, 0.01, (S, n, q)), 3)
+    C[5] = C[5, :1]
+    Abar = np.where(rng.random((S, q)) < 0.3, rng.normal(0.01, 0.01, (S, q)), np.inf)
+    Abar[:10] = np.inf
+    Abar[10, 3] = np.nan
+    Abar[11, :] = np.nan
+    Abar[12, 7] = -np.inf
+    Abar[13] = -1.0
+    h = np.empty(S)
+    k = np.empty(S, np.int64)
+    _fill_kernels.choose_block(*_block_inputs(A, B, Abar, C), W, h, k)
+    try:
+        fillmod.use_compiled_kernels(False)
+        h0, k0 = fillmod._choose(A, B, Abar, C, W)
+    finally:
+        fillmod.use_compiled_kernels(None)
+    # numpy's errors and feasibility, to judge ties
+    Bf = B.astype(float)
+    b = ((np.where(B, A, 0).sum(1))[:, None] - np.einsum('snq,sq->sn', C, Bf)) / Bf.sum(1)[:, None]
+    s = np.einsum('q,sq,snq->sn', W, Bf, (C - np.where(B, A, 0)[:, None, :] + b[..., None]) ** 2)
+    with np.errstate(invalid='ignore'):
+        bounded = np.isfinite(Abar).any(1)
+        ok = ~bounded[:, None] | ((C - Abar[:, None, :]).max(2) + b <= 0.0)
+    rows = np.arange(S)
+    same = k == k0
+    for i in np.flatnonzero(~same):
+        assert ok[i].any(), i                     # infeasible cells: same excess argmin
+        assert ok[i, k[i]]
+        assert abs(s[i, k[i]] - s[i, k0[i]]) <= 1e-15, (i, s[i, k[i]], s[i, k0[i]])
+    np.testing.assert_allclose(h[same], h0[same], rtol=0, atol=1e-15)
+    assert same.sum() >= S - 5 and (~ok[13]).all() and k[13] == k0[13]
+    # inf / NaN heights in a window: NaN errors, numpy's first-NaN argmin
+    A2 = A.copy()
+    A2[14, 2] = np.inf
+    A2[15, 0] = np.nan
+    B2 = B.copy()
+    _fill_kernels.choose_block(*_block_inputs(A2[14:16], B2[14:16], Abar[14:16], C[14:16]),
+                               W, h[:2], k[:2])
+    with np.errstate(invalid='ignore', over='ignore'):
+        try:
+            fillmod.use_compiled_kernels(False)
+            _, k1 = fillmod._choose(A2[14:16], B2[14:16], Abar[14:16], C[14:16], W)
+        finally:
+            fillmod.use_compiled_kernels(None)
+    np.testing.assert_array_equal(k[:2], k1)
+    assert rows.size == S
 
 
 def test_fill_kernel_equals_the_numpy_choice_on_nan_and_inf():
@@ -378,6 +551,7 @@ def test_check_footsteps_equals_the_previous_code(dry_run_cases):
         assert a[:2] == b[:2]
         for x, y in zip(a[2:], b[2:]):
             np.testing.assert_array_equal(x, y)
+
 
 
 # --- the footstep planner's search (footsteps.py) --------------------------------------------
