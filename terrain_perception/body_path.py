@@ -34,11 +34,11 @@ from dataclasses import dataclass
 from typing import Optional, Tuple
 
 import numpy as np
-from scipy.ndimage import maximum_filter
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import dijkstra
 
 from terrain_perception.compiled import load_compiled
+from terrain_perception.features import max_filter
 from terrain_perception.grid import ELEVATION, GridMap
 from terrain_perception.robot_model import RobotModel
 
@@ -127,7 +127,7 @@ def top_field(grid: GridMap, spacing_m: float) -> np.ndarray:
     """The grid's elevation max-filtered over ``spacing_m`` (unknown cells: -inf)."""
     h = np.where(np.isfinite(grid[ELEVATION]), grid[ELEVATION], -np.inf).astype(np.float64)
     w = int(np.ceil(spacing_m / grid.resolution_m)) + 1
-    return maximum_filter(h, size=w, mode='nearest')
+    return max_filter(h, w, 'nearest')
 
 
 def _lookup(grid: GridMap, field: np.ndarray, xy: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:

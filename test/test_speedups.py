@@ -634,6 +634,25 @@ def test_planner_search_equals_the_previous_code(centre):
     assert sum(s[4] >= 0 for s in steps) >= 10          # footholds on patches compared too
 
 
+
+def test_max_filter_equals_scipy_maximum_filter():
+    """features.max_filter (OpenCV dilation; the belly's top field and Kolter's height
+    differential) against scipy's maximum_filter it replaced: bitwise, both border modes, odd
+    and even sizes, -inf cells, maps smaller than the window."""
+    from scipy import ndimage
+
+    from terrain_perception.features import max_filter
+    rng = np.random.default_rng(9)
+    for shape in ((300, 300), (57, 91), (5, 3), (1, 40)):
+        h = rng.normal(0, 0.02, shape)
+        h[rng.random(shape) < 0.2] = -np.inf
+        for size in (1, 2, 3, 4, 5, 9, 21):
+            for mode in ('nearest', 'constant'):
+                want = ndimage.maximum_filter(h, size=size, mode=mode, cval=-np.inf)
+                assert max_filter(h, size, mode).tobytes() == want.tobytes(), (shape, size, mode)
+    with pytest.raises(ValueError, match='nearest'):
+        max_filter(h, 3, 'reflect')
+
 # --- terrain features ------------------------------------------------------------------------
 def test_kolter_features_equal_the_previous_code(walk):
     """The plane fitted only under cells of known height: every feature as before on the fill
