@@ -54,6 +54,21 @@ _in_f8_2d = types.Array(types.float64, 2, 'C', readonly=True)
 _in_f8_3d = types.Array(types.float64, 3, 'C', readonly=True)
 
 
+@njit(cache=True, nogil=True, inline='always')
+def _argmin_step(t, val, best, best_v, nan_seen):
+    """One step ``t`` (0, 1, ...) of numpy's argmin as a scan: ``(best, best_v, nan_seen)``
+    after seeing ``val``; the first NaN wins, else the first smallest value."""
+    if nan_seen:
+        return best, best_v, nan_seen
+    if t == 0:
+        return 0, val, math.isnan(val)
+    if math.isnan(val):
+        return t, best_v, True
+    if val < best_v:
+        return t, val, False
+    return best, best_v, False
+
+
 @njit(types.void(_in_f8_3d, _in_f8_2d, _in_f8_2d, _in_f8_2d, types.int64[::1],
                  types.boolean[::1]), **_JIT)
 def feasible_argmin(C, Abar, b, s, k, any_ok):
@@ -86,17 +101,7 @@ def feasible_argmin(C, Abar, b, s, k, any_ok):
             if ok:
                 found = True
             val = s[i, t] if ok else math.inf
-            if nan_seen:
-                continue
-            if t == 0:
-                best_v = val
-                nan_seen = math.isnan(val)
-            elif math.isnan(val):
-                best = t
-                nan_seen = True
-            elif val < best_v:
-                best = t
-                best_v = val
+            best, best_v, nan_seen = _argmin_step(t, val, best, best_v, nan_seen)
         k[i] = best
         any_ok[i] = found
 
@@ -258,17 +263,7 @@ def choose_block(Hpf, Kpf, Upf, corner, offs, bank, g, W, h_out, k_out):
             if ok:
                 found = True
             val = s if ok else math.inf
-            if nan_seen:
-                continue
-            if t == 0:
-                best_v = val
-                nan_seen = math.isnan(val)
-            elif math.isnan(val):
-                best = t
-                nan_seen = True
-            elif val < best_v:
-                best = t
-                best_v = val
+            best, best_v, nan_seen = _argmin_step(t, val, best, best_v, nan_seen)
         if not found:
             # no feasible sample: the least squared excess over the bounds
             best = 0
@@ -284,17 +279,7 @@ def choose_block(Hpf, Kpf, Upf, corner, offs, bank, g, W, h_out, k_out):
                         e = math.nan
                     elif v > 0.0:
                         e += v * v
-                if nan_seen:
-                    continue
-                if t == 0:
-                    best_v = e
-                    nan_seen = math.isnan(e)
-                elif math.isnan(e):
-                    best = t
-                    nan_seen = True
-                elif e < best_v:
-                    best = t
-                    best_v = e
+                best, best_v, nan_seen = _argmin_step(t, e, best, best_v, nan_seen)
         k_out[i] = best
         h_out[i] = flat[g[i, best] * q + centre] + b_all[best]
 

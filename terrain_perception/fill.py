@@ -67,8 +67,8 @@ _LOG = logging.getLogger(__name__)
 
 
 def _load_kernels():
-    """The compiled choice step and viewshed (terrain_perception._fill_kernels), or None for
-    the numpy code (``TERRAIN_FILL_NUMBA=0``, or numba missing: logged once)."""
+    """The compiled rounds, choice step and viewshed (terrain_perception._fill_kernels), or
+    None for the numpy code (``TERRAIN_FILL_NUMBA=0``, or numba missing: logged once)."""
     return load_compiled('_fill_kernels', 'TERRAIN_FILL_NUMBA', 'Fill-Terrain', _LOG)
 
 
@@ -76,10 +76,10 @@ _kernels = _load_kernels()
 
 
 def use_compiled_kernels(enabled: Optional[bool] = True) -> bool:
-    """Select the compiled choice step and viewshed (``True``), the numpy code (``False``) or
-    the default (``None``) for the following fills and bounds, process-wide; returns whether
-    compiled is on. Both give bitwise the same bounds, and fills equal within rounding (the
-    same library samples; see terrain_perception._fill_kernels.choose_block)."""
+    """Select the compiled rounds, choice step and viewshed (``True``), the numpy code
+    (``False``) or the default (``None``) for the following fills and bounds, process-wide;
+    returns whether compiled is on. Both give bitwise the same rounds and bounds, and fills
+    equal within rounding (the same library samples; _fill_kernels.choose_block)."""
     global _kernels
     if enabled is None:
         _kernels = _load_kernels()

@@ -312,6 +312,28 @@ def test_select_round_kernel_equals_the_numpy_rounds():
     assert rounds > 100
 
 
+def _adversarial_block():
+    """``(W, A, B, C, Abar)`` of 40 cells x 30 samples x 5 x 5 windows that make the choice
+    step's corner cases: coarse patch values (ties in s), a cell whose samples are all equal,
+    unbounded cells (0-9), a NaN bound (10), all bounds NaN (11), a -inf bound (12), nothing
+    feasible (13)."""
+    rng = np.random.default_rng(4)
+    S, n, q = 40, 30, 25
+    W = fillmod.gaussian_weights(5, 1.5).ravel()
+    A = rng.normal(0, 0.01, (S, q))
+    B = rng.random((S, q)) < 0.6
+    B[:, 0] = True
+    C = np.round(rng.normal(0, 0.01, (S, n, q)), 3)        # coarse values: ties in s
+    C[5] = C[5, :1]                                         # one cell: all samples equal
+    Abar = np.where(rng.random((S, q)) < 0.3, rng.normal(0.01, 0.01, (S, q)), np.inf)
+    Abar[:10] = np.inf                                      # unbounded cells
+    Abar[10, 3] = np.nan
+    Abar[11, :] = np.nan
+    Abar[12, 7] = -np.inf
+    Abar[13] = -1.0                                         # nothing feasible
+    return W, A, B, C, Abar
+
+
 def _block_inputs(A, B, Abar, C):
     """A block of _choose's inputs laid out as choose_block reads them (one window per cell
     in a flat 'padded map', one bank row per sample)."""
@@ -329,20 +351,8 @@ def test_choose_block_kernel_on_ties_nan_and_inf():
     rounding (and feasible where one is); the heights within rounding where the sample is
     the same; NaN rows as numpy's argmin takes them."""
     from terrain_perception import _fill_kernels
-    rng = np.random.default_rng(4)
-    S, n, q = 40, 30, 25
-    W = fillmod.gaussian_weights(5, 1.5).ravel()
-    A = rng.normal(0, 0.01, (S, q))
-    B = rng.random((S, q)) < 0.6
-    B[:, 0] = True
-    C = np.round(rng.normal(0, 0.01, (S, n, q)), 3)
-    C[5] = C[5, :1]
-    Abar = np.where(rng.random((S, q)) < 0.3, rng.normal(0.01, 0.01, (S, q)), np.inf)
-    Abar[:10] = np.inf
-    Abar[10, 3] = np.nan
-    Abar[11, :] = np.nan
-    Abar[12, 7] = -np.inf
-    Abar[13] = -1.0
+    W, A, B, C, Abar = _adversarial_block()
+    S = len(A)
     h = np.empty(S)
     k = np.empty(S, np.int64)
     _fill_kernels.choose_block(*_block_inputs(A, B, Abar, C), W, h, k)
@@ -353,12 +363,12 @@ def test_choose_block_kernel_on_ties_nan_and_inf():
         fillmod.use_compiled_kernels(None)
     # numpy's errors and feasibility, to judge ties
     Bf = B.astype(float)
-    b = ((np.where(B, A, 0).sum(1))[:, None] - np.einsum('snq,sq->sn', C, Bf)) / Bf.sum(1)[:, None]
-    s = np.einsum('q,sq,snq->sn', W, Bf, (C - np.where(B, A, 0)[:, None, :] + b[..., None]) ** 2)
+    Az = np.where(B, A, 0.0)
+    b = (Az.sum(1)[:, None] - np.einsum('snq,sq->sn', C, Bf)) / Bf.sum(1)[:, None]
+    s = np.einsum('q,sq,snq->sn', W, Bf, (C - Az[:, None, :] + b[..., None]) ** 2)
     with np.errstate(invalid='ignore'):
         bounded = np.isfinite(Abar).any(1)
         ok = ~bounded[:, None] | ((C - Abar[:, None, :]).max(2) + b <= 0.0)
-    rows = np.arange(S)
     same = k == k0
     for i in np.flatnonzero(~same):
         assert ok[i].any(), i                     # infeasible cells: same excess argmin
@@ -370,36 +380,21 @@ def test_choose_block_kernel_on_ties_nan_and_inf():
     A2 = A.copy()
     A2[14, 2] = np.inf
     A2[15, 0] = np.nan
-    B2 = B.copy()
-    _fill_kernels.choose_block(*_block_inputs(A2[14:16], B2[14:16], Abar[14:16], C[14:16]),
+    _fill_kernels.choose_block(*_block_inputs(A2[14:16], B[14:16], Abar[14:16], C[14:16]),
                                W, h[:2], k[:2])
     with np.errstate(invalid='ignore', over='ignore'):
         try:
             fillmod.use_compiled_kernels(False)
-            _, k1 = fillmod._choose(A2[14:16], B2[14:16], Abar[14:16], C[14:16], W)
+            _, k1 = fillmod._choose(A2[14:16], B[14:16], Abar[14:16], C[14:16], W)
         finally:
             fillmod.use_compiled_kernels(None)
     np.testing.assert_array_equal(k[:2], k1)
-    assert rows.size == S
 
 
 def test_fill_kernel_equals_the_numpy_choice_on_nan_and_inf():
     """Blocks of cells with no bound, some bounds, NaN/-inf bounds, NaN/inf errors, ties and
     cells where no sample is feasible: same heights and sample indices."""
-    rng = np.random.default_rng(4)
-    S, n, q = 40, 30, 25
-    W = fillmod.gaussian_weights(5, 1.5).ravel()
-    A = rng.normal(0, 0.01, (S, q))
-    B = rng.random((S, q)) < 0.6
-    B[:, 0] = True
-    C = np.round(rng.normal(0, 0.01, (S, n, q)), 3)        # coarse values: ties in s
-    C[5] = C[5, :1]                                         # one cell: all samples equal
-    Abar = np.where(rng.random((S, q)) < 0.3, rng.normal(0.01, 0.01, (S, q)), np.inf)
-    Abar[:10] = np.inf                                      # unbounded cells
-    Abar[10, 3] = np.nan
-    Abar[11, :] = np.nan
-    Abar[12, 7] = -np.inf
-    Abar[13] = -1.0                                         # nothing feasible
+    W, A, B, C, Abar = _adversarial_block()
     A[14, 2] = np.inf                                       # s, h inf/NaN
     A[15, 0] = np.nan
     cases = [(A, B, Abar, C), (A[:10], B[:10], Abar[:10], C[:10]),
