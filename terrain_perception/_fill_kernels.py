@@ -285,10 +285,9 @@ def choose_block(Hpf, Kpf, Upf, corner, offs, bank, g, W, h_out, k_out):
 
 
 _in_b1_2d = types.Array(types.boolean, 2, 'C', readonly=True)
-_in_i8_2d_r = types.Array(types.int64, 2, 'C', readonly=True)
 
 
-@njit(types.int64(_in_b1_2d, _in_b1_2d, types.boolean, _in_i8_2d_r, types.int64,
+@njit(types.int64(_in_b1_2d, _in_b1_2d, types.boolean, _in_i8_2d, types.int64,
                   types.int64[::1], types.int64[::1]), **_JIT)
 def select_round(known, todo, use_todo, rank, w, box, out):
     """:func:`terrain_perception.fill.select_round` in one pass: the missing cells (and in
