@@ -20,6 +20,9 @@ the points and one over the touched cells:
   gather of an organized (strided) cloud, widened to float64.
 * :func:`cloud_height_normals` - ``mapping.cloud_height_normals`` (the coarse model's normals
   of each capture) in one pass per step instead of ~30 temporaries.
+* :func:`nearest_in_columns` - the ICP's correspondence search (``mapping.ModelIndex``): the
+  nearest coarse-model point within a bound, by x-y columns searched nearest first; scipy's
+  cKDTree is its reference (same rows, bitwise the same distances; ``test/test_mapping.py``).
 * :func:`isolated_cells` - ``mapping.isolated_cells`` (the lone mismatches hidden from every
   published fine map): the neighbours' median and the islands' flood fill in two passes
   instead of a stack of neighbour gathers, ``np.nanmedian``, a dilation and a labelling
@@ -472,3 +475,68 @@ def isolated_cells(h, obs, few, min_neighbours, gate_m, island_cells, out):
                     c = members[k]
                     if few[c // ny, c % ny]:
                         out[c // ny, c % ny] = True
+
+
+
+@njit(types.void(_in_f8_2d, _in_i8_1d, _in_i8_1d, _f8, _f8, _f8, _i8, _i8, _in_f8_2d, _f8,
+                 _f8_1d, _i8_1d), **_JIT)
+def nearest_in_columns(pts, order, starts, x0, y0, cell, nx, ny, query, bound, dist, idx):
+    """The nearest of the model points ``pts`` (M, 3), sorted by the ``nx`` x ``ny`` columns
+    of ``cell`` x ``cell`` from ``(x0, y0)`` (column ``c``: rows ``starts[c]:starts[c + 1]``,
+    model row ``order[k]``), of each ``query`` point strictly within ``bound`` [m] (squared
+    distances compared, as scipy's cKDTree does): ``dist`` its distance (inf: none), ``idx``
+    its model row (M: none); among equally near points the lowest model row.
+
+    A point within ``bound`` lies in the columns within ``reach = ceil(bound / cell)`` of the
+    query's. They are visited nearest first (offsets 0, -1, +1, -2, ...) and a column is
+    skipped when its x-y rectangle (less 1e-9 m: a point's column comes from a rounded
+    division) is farther than the best squared distance so far, so only a tie or a nearer
+    point can be skipped never. The squared distance is summed x, y, z from 0, as cKDTree's
+    ``sqeuclidean_distance_double`` does for 3 dimensions."""
+    n_model = pts.shape[0]
+    bound2 = bound * bound
+    reach = np.int64(math.ceil(bound / cell))
+    for k in range(query.shape[0]):
+        qx, qy, qz = query[k, 0], query[k, 1], query[k, 2]
+        best = bound2               # only strictly nearer points are taken
+        best_row = n_model
+        fi = math.floor((qx - x0) / cell)
+        fj = math.floor((qy - y0) / cell)
+        # NaN or far off the columns: nothing within reach (float tests, no int overflow)
+        if fi >= -reach and fi < nx + reach and fj >= -reach and fj < ny + reach:
+            ci, cj = np.int64(fi), np.int64(fj)
+            for sa in range(2 * reach + 1):
+                a = ci + ((sa + 1) // 2) * (1 if sa % 2 == 0 else -1)
+                if a < 0 or a >= nx:
+                    continue
+                gx = max(x0 + a * cell - qx, qx - (x0 + (a + 1) * cell), 0.0)
+                gx = max(gx - 1e-9, 0.0)
+                gx2 = gx * gx
+                if gx2 > best:
+                    continue
+                for sb in range(2 * reach + 1):
+                    b = cj + ((sb + 1) // 2) * (1 if sb % 2 == 0 else -1)
+                    if b < 0 or b >= ny:
+                        continue
+                    gy = max(y0 + b * cell - qy, qy - (y0 + (b + 1) * cell), 0.0)
+                    gy = max(gy - 1e-9, 0.0)
+                    if gx2 + gy * gy > best:
+                        continue
+                    c = a * ny + b
+                    for r in range(starts[c], starts[c + 1]):
+                        d = pts[r, 0] - qx
+                        s = 0.0 + d * d
+                        d = pts[r, 1] - qy
+                        s += d * d
+                        d = pts[r, 2] - qz
+                        s += d * d
+                        if s < best or (s == best and best_row < n_model
+                                        and order[r] < best_row):
+                            best = s
+                            best_row = order[r]
+        if best_row < n_model:
+            dist[k] = math.sqrt(best)
+            idx[k] = best_row
+        else:
+            dist[k] = math.inf
+            idx[k] = n_model

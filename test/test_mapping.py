@@ -1106,3 +1106,117 @@ def test_a_deferred_coarse_model_gives_the_same_walk(terrain):
     np.testing.assert_array_equal(now.coarse_points(), later.coarse_points())
     np.testing.assert_array_equal(now.coarse_normals(), later.coarse_normals())
     assert len(now.coarse_points()) > 1000
+
+
+def _model_with_steps(rng):
+    """Voxel centroids of a bumpy floor with box-shaped stones (vertical faces: tall x-y
+    columns), in the coarse model's form."""
+    g, scene = bumpy(), None
+    xs, ys = g.cell_centers()
+    X, Y = np.meshgrid(xs[::2], ys[::2], indexing='ij')
+    Z = g[ELEVATION][::2, ::2] + 0.12 * ((np.abs(X - 0.3) < 0.1) & (np.abs(Y + 0.2) < 0.1))
+    floor = np.column_stack([X.ravel(), Y.ravel(), Z.ravel()])
+    face = np.column_stack([np.full(300, 0.2), rng.uniform(-0.3, -0.1, 300),
+                            rng.uniform(0.0, 0.12, 300)])
+    pts = np.vstack([floor, face]) + rng.normal(0.0, 0.002, (len(floor) + 300, 3))
+    return mp.voxel_centroids(pts, 0.01)
+
+
+@pytest.mark.parametrize('bound', [0.04, 0.015, 0.11])
+def test_model_index_answers_as_the_kdtree(bound):
+    """The ICP's correspondence search (``ModelIndex``, columns of half the mapper's 4 cm
+    bound, searched nearest first) gives scipy cKDTree's answer to ``query(p, k=1,
+    distance_upper_bound=bound)`` for bounds below, at and above the one it was built for:
+    the same found points, the same rows and bitwise the same distances, for queries on the
+    surface, off it by up to twice the bound, exactly at the bound and off the model; on
+    exact ties (a duplicated model point) the lowest row. A NaN query is refused by both."""
+    from scipy.spatial import cKDTree
+    rng = np.random.default_rng(3)
+    model = _model_with_steps(rng)
+    index = mp.ModelIndex(model, 0.04)
+    assert index.compiled, 'the compiled column search is what is under test'
+    tree = cKDTree(model)
+    q = np.vstack([model[rng.integers(len(model), size=3000)]
+                   + rng.normal(0.0, s, (3000, 3)) for s in (0.0, 0.005, 0.02, 0.08)])
+    at_bound = model[:50] + [bound, 0.0, 0.0]
+    q = np.vstack([q, at_bound, [[50.0, 0.0, 0.0], [0.0, -50.0, 0.1]]])
+    d_ref, i_ref = tree.query(q, k=1, distance_upper_bound=bound)
+    d, i = index.query(q, k=1, distance_upper_bound=bound)
+    found = np.isfinite(d_ref)
+    assert 0.3 * len(q) < found.sum() < len(q) - 50
+    np.testing.assert_array_equal(np.isfinite(d), found)
+    np.testing.assert_array_equal(d, d_ref)
+    np.testing.assert_array_equal(i, i_ref)
+    assert np.all(i[~found] == len(model))
+    # a duplicated model point: the same distance, the lower row
+    dup = np.vstack([model, model[[10]]])
+    d2, i2 = mp.ModelIndex(dup, 0.04).query(model[[10]] + 0.001, distance_upper_bound=bound)
+    assert i2[0] == 10 and d2[0] == cKDTree(dup).query(model[[10]] + 0.001)[0][0]
+    with pytest.raises(ValueError, match='finite'):
+        index.query(np.array([[np.nan, 0.0, 0.0]]), distance_upper_bound=bound)
+
+
+def test_model_index_falls_back_to_the_kdtree():
+    """Without the compiled kernels, for k > 1 or no bound, and for a model spread over
+    kilometres (too many columns), ``ModelIndex`` answers with a cKDTree: the same results."""
+    from scipy.spatial import cKDTree
+    rng = np.random.default_rng(4)
+    model = _model_with_steps(rng)
+    q = model[:500] + rng.normal(0.0, 0.01, (500, 3))
+    ref = cKDTree(model).query(q, k=1, distance_upper_bound=0.04)
+    far = np.vstack([model, [[5000.0, 5000.0, 0.0]]])
+    assert not mp.ModelIndex(far, 0.04).compiled
+    for got in (mp.ModelIndex(far, 0.04).query(q, distance_upper_bound=0.04),):
+        np.testing.assert_array_equal(got[0], ref[0])
+        np.testing.assert_array_equal(got[1], ref[1])
+    d3, i3 = mp.ModelIndex(model, 0.04).query(q, k=3)
+    np.testing.assert_array_equal(i3, cKDTree(model).query(q, k=3)[1])
+    try:
+        mp.use_compiled_kernels(False)
+        plain = mp.ModelIndex(model, 0.04)
+        assert not plain.compiled
+        got = plain.query(q, distance_upper_bound=0.04)
+    finally:
+        mp.use_compiled_kernels(None)
+    np.testing.assert_array_equal(got[0], ref[0])
+    np.testing.assert_array_equal(got[1], ref[1])
+
+
+def test_a_walk_aligned_with_the_model_index_equals_the_kdtree_walk(terrain, monkeypatch):
+    """The mapper's alignments with ``ModelIndex`` and with a cKDTree of the coarse model
+    (the code before it): along a 12-capture walk with 1 cm/capture of odometry error, every
+    pose and the fine map bitwise the same."""
+    from scipy.spatial import cKDTree
+    _, scene = terrain
+    walk = []
+    for k in range(12):
+        T_true = make_T(rpy_to_R(0.0, 0.0, np.radians(2.0 * k)), [0.03 * k, 0.01 * k, 0.2])
+        walk.append((cloud_at(scene, T_true),
+                     make_T(T_true[:3, :3], T_true[:3, 3] + [0.01 * k, 0.0, 0.0]), T_true))
+
+    searched = []
+    real = mp.constrained_icp
+
+    def spied(src, model, normals, tree, *args, **kw):
+        searched.append(type(tree).__name__ + str(getattr(tree, 'compiled', '')))
+        return real(src, model, normals, tree, *args, **kw)
+
+    monkeypatch.setattr(mp, 'constrained_icp', spied)
+
+    def run():
+        searched.clear()
+        m = mp.IcpMapper(CONFIG, T_BC)
+        poses = [m.update(c, T_o, float(k), attitude=T_t[:3, :3]).T_map_base
+                 for k, (c, T_o, T_t) in enumerate(walk)]
+        return m, poses, set(searched)
+
+    m_new, new, used = run()
+    assert used == {'ModelIndexTrue'}
+    monkeypatch.setattr(mp, 'ModelIndex', lambda pts, bound: cKDTree(pts))
+    m_old, old, used = run()
+    assert used == {'cKDTree'}
+    for a, b in zip(new, old):
+        np.testing.assert_array_equal(a, b)
+    ga, gb = m_new.fine_grid(), m_old.fine_grid()
+    for name in ga.layers:
+        np.testing.assert_array_equal(ga[name], gb[name])
