@@ -135,7 +135,7 @@ def xyz_to_cloud(points: np.ndarray, frame_id: str, stamp,
     An ``(H, W, 3)`` array gives an organized cloud (height H, width W, ``is_dense`` False when
     any point is NaN); ``(N, 3)`` gives height 1.
     """
-    pts = np.asarray(points, dtype=np.float32)
+    pts = np.asarray(points, dtype='<f4')
     if pts.ndim == 2 and pts.shape[1] == 3:
         h, w = 1, pts.shape[0]
     elif pts.ndim == 3 and pts.shape[2] == 3:
@@ -144,14 +144,17 @@ def xyz_to_cloud(points: np.ndarray, frame_id: str, stamp,
         raise ValueError(f'points must be (N, 3) or (H, W, 3), got {pts.shape}')
     extra = dict(extra or {})
     names = ['x', 'y', 'z'] + list(extra)
-    rec = np.empty((h, w), dtype=[(n, '<f4') for n in names])
-    flat = pts.reshape(h, w, 3)
-    rec['x'], rec['y'], rec['z'] = flat[..., 0], flat[..., 1], flat[..., 2]
-    for n, v in extra.items():
-        v = np.asarray(v, dtype=np.float32)
-        if v.size != h * w:
-            raise ValueError(f'extra field {n!r} has {v.size} values for {h * w} points')
-        rec[n] = v.reshape(h, w)
+    if extra:
+        rec = np.empty((h, w), dtype=[(n, '<f4') for n in names])
+        flat = pts.reshape(h, w, 3)
+        rec['x'], rec['y'], rec['z'] = flat[..., 0], flat[..., 1], flat[..., 2]
+        for n, v in extra.items():
+            v = np.asarray(v, dtype=np.float32)
+            if v.size != h * w:
+                raise ValueError(f'extra field {n!r} has {v.size} values for {h * w} points')
+            rec[n] = v.reshape(h, w)
+    else:
+        rec = pts                 # little-endian x, y, z rows: the record layout already
     msg = PointCloud2()
     msg.header = make_header(frame_id, stamp)
     msg.height, msg.width = h, w
@@ -160,9 +163,18 @@ def xyz_to_cloud(points: np.ndarray, frame_id: str, stamp,
     msg.is_bigendian = False  # written little-endian ('<f4') on every host
     msg.point_step = 4 * len(names)
     msg.row_step = msg.point_step * w
-    msg.data = rec.tobytes()
+    msg.data = _field_array(rec)
     msg.is_dense = bool(np.isfinite(pts).all())
     return msg
+
+
+def _field_array(a: np.ndarray, typecode: str = 'B') -> array.array:
+    """The bytes of ``a`` (C order) as the ``array`` a uint8[] (``'B'``) or float32[] (``'f'``,
+    ``a`` float32) message field holds, taken as it is: one copy (``tobytes()`` and then the
+    field's own ``array('B', ...)`` were two of a 3.7 MB cloud, ~1.5 ms per 640x480 frame)."""
+    out = array.array(typecode)
+    out.frombytes(np.ascontiguousarray(a).reshape(-1).view(np.uint8))
+    return out
 
 
 # ---------------------------------------------------------------------------------------------
@@ -218,7 +230,7 @@ def numpy_to_image(arr: np.ndarray, encoding: str, frame_id: str = '', stamp=0.0
     msg.encoding = encoding
     msg.is_bigendian = 0
     msg.step = msg.width * ch * arr.dtype.itemsize
-    msg.data = arr.tobytes()
+    msg.data = _field_array(arr)
     return msg
 
 
@@ -251,8 +263,7 @@ def grid_to_msg(grid: GridMap, stamp=None, basic_layers: Sequence[str] = ()) -> 
         arr.layout.data_offset = 0
         # array.array: rclpy range-checks a numpy array's floats one by one in Python
         # (~137 ms for a 300 x 300 x 7 map); an array('f') is taken as it is (~1 ms).
-        arr.data = array.array('f', np.asarray(mat, dtype=np.float32).ravel(order='F')
-                               .tobytes())
+        arr.data = _field_array(np.asarray(mat, dtype=np.float32).ravel(order='F'), 'f')
         data.append(arr)
     msg.data = data
     msg.outer_start_index = 0

@@ -28,6 +28,24 @@ def test_organized_cloud_round_trip_keeps_nan_and_shape():
     assert cv.stamp_to_sec(msg.header.stamp) == pytest.approx(12.5)
 
 
+def test_cloud_bytes_are_little_endian_xyz_records_whatever_the_input_layout():
+    """The wire layout (point_step 12, x y z float32 little-endian, row after row) from a
+    float32 C array (taken as it is), a float64 one and a transposed view; serialised by
+    rclpy the same."""
+    from rclpy.serialization import deserialize_message, serialize_message
+    from sensor_msgs.msg import PointCloud2
+    pts = RNG.normal(size=(30, 40, 3)).astype(np.float32)
+    pts[2, 3] = np.nan
+    want = pts.astype('<f4').tobytes()
+    for given in (pts, pts.astype(np.float64), np.ascontiguousarray(
+            pts.transpose(1, 0, 2)).transpose(1, 0, 2)):
+        msg = cv.xyz_to_cloud(given, 'cam', 1.0)
+        assert (msg.point_step, msg.row_step) == (12, 12 * 40)
+        assert bytes(msg.data) == want
+        again = deserialize_message(serialize_message(msg), PointCloud2)
+        assert bytes(again.data) == want
+
+
 def test_unorganized_cloud_with_extra_field_round_trip():
     pts = RNG.normal(size=(100, 3)).astype(np.float32)
     inten = RNG.uniform(size=100).astype(np.float32)

@@ -19,13 +19,16 @@ repeatable run to run. Each callback is timed with ``time.process_time()``: the 
 thread of this process (OpenMP/BLAS workers included), which is what a node costs on a loaded
 2-core machine; deserialising the message is part of its callback's time.
 
-Settings as the demo's launch file (``config/launch/sim.yaml``) has them, plus
-``always_process: true`` for the stereo node; the fill node's generated library is cached in
+Settings as the demo's launch file (``config/launch/sim.yaml``) has them, the stereo node
+without a rate limit; the fill node's generated library is cached in
 ``<repo>/build/cache/fill_library`` and loaded before the replay (not timed). A sink
 subscription on ``/map/fine``, ``/map/filled`` and ``/footstep_plan`` makes publishers that
 convert only for subscribers do that work, as the next node's subscription does in the graph.
 Marker topics get no sink (only viewers and the demo's recorder subscribe to them): their
-conversion is not counted.
+conversion is not counted; nor are the stereo node's disparity image and RANSAC ground plane,
+which it computes only for a subscriber (none in the closed loop's graph; a recorder makes the
+node fit the plane, ~13 ms per frame after the clouds are out). Its clouds have the mapper's
+and the planner's subscriptions in this process.
 
 Stages (per capture = per left-image stamp; the row's capture is the header stamp of the
 message the stage worked on):
@@ -304,10 +307,10 @@ class Replay:
         self.nodes: list = []
         try:
             P = Parameter
-            # Every recorded pair is processed (no rate limit between the replayed pairs).
+            # Every recorded pair is processed (no rate limit between the replayed pairs);
+            # outputs only for the subscribers the loop's graph has (_wait_for_sink)
             self.S = self._add(StereoNode(context=self.ctx, parameter_overrides=[
-                P('always_process', value=True), P('max_rate_hz', value=1000.0),
-                P('robot', value=robot)]))
+                P('max_rate_hz', value=1000.0), P('robot', value=robot)]))
             self.M = self._add(IcpMapperNode(context=self.ctx, parameter_overrides=[
                 P('robot', value=robot)]))
             self.F = self._add(TerrainFillNode(context=self.ctx, parameter_overrides=[
@@ -337,7 +340,8 @@ class Replay:
         return node
 
     def _wait_for_sink(self, timeout_s: float) -> bool:
-        pubs = (self.M.pub_fine, self.F.pub, self.P.pub_plan)
+        pubs = (self.S.pub_points, self.S.pub_coarse, self.M.pub_fine, self.F.pub,
+                self.P.pub_plan)
         deadline = time.monotonic() + timeout_s
         while time.monotonic() < deadline:
             if all(p.get_subscription_count() > 0 for p in pubs):
