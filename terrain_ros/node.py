@@ -1,9 +1,11 @@
-"""Helpers every node shares: the Jazzy ``main()`` idiom and counted, rate-limited bad-input logs."""
+"""Helpers every node shares: the Jazzy ``main()`` idiom (and its executor) and counted,
+rate-limited bad-input logs."""
 
 from __future__ import annotations
 
 import os
 import sys
+import time
 from collections import Counter
 from typing import Callable, Dict, Optional, Type
 
@@ -92,7 +94,9 @@ class Counters:
 
     ``bump(key, reason)`` counts an event; the first occurrence of each key is logged as a
     warning with its reason, later ones every ``log_every`` occurrences. ``publish()`` sends a
-    ``diagnostic_msgs/DiagnosticArray`` on ``~/diagnostics``.
+    ``diagnostic_msgs/DiagnosticArray`` on ``~/diagnostics``: the counters and, as the value
+    ``process_cpu_ms`` (not a counter: it does not raise the level), the CPU this process has
+    used so far (all its threads), which the closed-loop report gives per node.
     """
 
     def __init__(self, node: Node, log_every: int = 100,
@@ -125,6 +129,8 @@ class Counters:
                                   message=', '.join(f'{k}={v}' for k, v in
                                                     sorted(self.counts.items())) or 'ok')
         status.values = [KeyValue(key=k, value=str(v)) for k, v in sorted(self.counts.items())]
+        status.values.append(KeyValue(key=timing.CPU_KEY,
+                                      value=str(int(1000 * time.process_time()))))
         msg = DiagnosticArray(status=[status])
         msg.header.stamp = self._node.get_clock().now().to_msg()
         self._pub.publish(msg)

@@ -31,6 +31,7 @@ import numpy as np
 
 from terrain_perception.features import CostConfig, cost_map
 from terrain_perception.grid import GridMap
+from terrain_ros.timing import CPU_KEY
 
 LEG_NAMES = ('LF', 'RF', 'LH', 'RH')
 LEG_COLOURS = ('tab:red', 'tab:green', 'tab:blue', 'tab:orange')
@@ -541,7 +542,11 @@ def compute_summary(d: RunData, model=None, cost_cfg: CostConfig = CostConfig())
         missing['capture_to_plan_ms_median'] = 'no plan matched a captured image stamp'
     s['messages'] = dict(sorted(d.counts.items()))
     s['nodes'] = d.nodes
-    s['node_counters'] = d.node_counters
+    # each node's process CPU [s] at its last diagnostics (a value, not a counter)
+    s['node_cpu_s'] = {k: round(v[CPU_KEY] / 1000.0, 1)
+                       for k, v in sorted(d.node_counters.items()) if CPU_KEY in v}
+    s['node_counters'] = {k: {c: n for c, n in v.items() if c != CPU_KEY}
+                          for k, v in d.node_counters.items()}
     s['complete_graph'] = bool(d.nodes) and all(
         n.get('state') == 'ran' for n in d.nodes.values())
     s['missing'] = missing
@@ -1033,6 +1038,11 @@ def format_summary(s: dict) -> str:
             f'{n("accepted_confirmed")} confirmed by repeated captures, '
             f'{n("accepted_after_disturbance")} after a free fall, '
             f'{n("model_restarted")} model restarts')
+    cpu = s.get('node_cpu_s') or {}
+    if cpu and s.get('wall_time_s'):
+        lines.append('  node CPU       ' + ', '.join(
+            f'{k} {100 * v / s["wall_time_s"]:.0f}%' for k, v in cpu.items())
+            + ' of a core')
     for fa in s.get('fall_analysis') or []:
         lines.append(f'  fall           {fa["text"]}')
     bad = {k: v for k, v in s.get('nodes', {}).items() if v.get('state') != 'ran'}

@@ -34,6 +34,8 @@ from pathlib import Path
 from typing import Any, Dict, List, Optional
 
 ENV_VAR = 'TERRAIN_TIMING_DIR'
+#: the ~/diagnostics value of a node process's CPU time so far [ms] (terrain_ros.node.Counters)
+CPU_KEY = 'process_cpu_ms'
 PROFILE_ENV_VAR = 'TERRAIN_CPROFILE_DIR'
 FLUSH_EVERY = 2000
 

@@ -47,9 +47,15 @@ def test_summary_carries_the_node_counters_and_prints_the_mappers_decisions():
     d.node_counters = {'icp_mapper': {'mapper_accepted': 290, 'mapper_rejected_correction': 7,
                                       'mapper_rejected_rotation': 1, 'mapper_rejected_rmse': 4,
                                       'mapper_accepted_confirmed': 2, 'odom_jump': 1},
-                       'stereo_node': {'bad_image': 3}}
+                       'stereo_node': {'bad_image': 3, 'process_cpu_ms': 35250},
+                       'sim_bridge': {'process_cpu_ms': 117468}}
     s = compute_summary(d)
     assert s['node_counters']['stereo_node'] == {'bad_image': 3}
+    assert s['node_counters']['sim_bridge'] == {}
+    # the process CPU comes out of the counters into its own entry [s]
+    assert s['node_cpu_s'] == {'sim_bridge': 117.5, 'stereo_node': 35.2}
+    s['wall_time_s'] = 235.0
+    assert 'node CPU       sim_bridge 50%, stereo_node 15% of a core' in format_summary(s)
     assert ('ICP decisions  290 accepted, refused: 8 by the drift guard, 4 as misfits; 2 '
             'confirmed by repeated captures, 0 after a free fall, 0 model restarts'
             in format_summary(s))

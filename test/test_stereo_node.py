@@ -247,7 +247,11 @@ def test_every_bad_input_is_counted_and_nothing_is_published(ros_context, execut
                              RELIABLE_QOS)
     assert h.spin(lambda: diags, 5.0)
     got = {kv.key: int(kv.value) for kv in diags[-1].status[0].values}
+    # with this process's CPU so far [ms] (the report's node_cpu_s), not a counter
+    cpu_ms = got.pop('process_cpu_ms')
     assert got == want
+    assert 0 < cpu_ms <= 1000 * time.process_time()
+    assert diags[-1].status[0].message == ', '.join(f'{k}={v}' for k, v in sorted(want.items()))
 
 
 def _img(t):
