@@ -84,8 +84,34 @@ class RunData:
     nodes: Dict[str, dict] = field(default_factory=dict)
     sim_time_s: float = 0.0
     wall_time_s: float = 0.0
+    #: the whole machine over the run (:func:`machine_cpu_pct`): busy / stolen by the host [%]
+    machine_cpu_pct: Dict[str, float] = field(default_factory=dict)
     end_reason: str = ''
     notes: List[str] = field(default_factory=list)
+
+
+def cpu_ticks() -> Optional[List[int]]:
+    """The machine's aggregate CPU time counters (``/proc/stat``'s ``cpu`` line: user, nice,
+    system, idle, iowait, irq, softirq, steal, ...), or None where there is no such file."""
+    try:
+        with open('/proc/stat') as f:
+            return [int(v) for v in f.readline().split()[1:]]
+    except (OSError, ValueError):
+        return None
+
+
+def machine_cpu_pct(before: Optional[List[int]], after: Optional[List[int]]) -> Dict[str, float]:
+    """Between two :func:`cpu_ticks`: the share of all CPUs' time that was busy (neither idle
+    nor waiting for I/O) and the share the hypervisor gave another guest (``steal``: a virtual
+    machine's cores run slower by that much) [%]; empty without both."""
+    if not before or not after or len(before) < 8 or len(after) < 8:
+        return {}
+    d = [b - a for a, b in zip(before[:8], after[:8])]
+    total = sum(d)
+    if total <= 0:
+        return {}
+    return {'busy': round(100.0 * (total - d[3] - d[4] - d[7]) / total, 1),
+            'steal': round(100.0 * d[7] / total, 1)}
 
 
 # ---------------------------------------------------------------------------------------------
@@ -406,6 +432,7 @@ def compute_summary(d: RunData, model=None, cost_cfg: CostConfig = CostConfig())
         'sim_time_s': round(d.sim_time_s, 3), 'wall_time_s': round(d.wall_time_s, 1),
         'real_time_factor': (round(d.sim_time_s / d.wall_time_s, 3)
                              if d.wall_time_s > 0 else None),
+        'machine_cpu_pct': dict(d.machine_cpu_pct),
         'course_geometry_m': {'start_x': c.start_x_m, 'rough_x0': c.rough_x0_m,
                               'rough_x1': c.rough_x1_m, 'finish_x': c.finish_x_m},
     }
@@ -1038,6 +1065,10 @@ def format_summary(s: dict) -> str:
             f'{n("accepted_confirmed")} confirmed by repeated captures, '
             f'{n("accepted_after_disturbance")} after a free fall, '
             f'{n("model_restarted")} model restarts')
+    mc = s.get('machine_cpu_pct') or {}
+    if mc:
+        lines.append(f'  machine        {mc["busy"]:.0f}% busy, {mc["steal"]:.1f}% stolen by the '
+                     'host (all CPUs, over the run)')
     cpu = s.get('node_cpu_s') or {}
     if cpu and s.get('wall_time_s'):
         lines.append('  node CPU       ' + ', '.join(

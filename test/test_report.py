@@ -63,6 +63,23 @@ def test_summary_carries_the_node_counters_and_prints_the_mappers_decisions():
     assert 'ICP decisions' not in format_summary(compute_summary(d))
 
 
+def test_machine_cpu_shares_between_two_proc_stat_readings():
+    from terrain_ros.report import cpu_ticks, machine_cpu_pct
+    # user nice system idle iowait irq softirq steal guest guest_nice
+    a = [100, 50, 10, 800, 20, 0, 5, 15, 0, 0]
+    b = [500, 200, 40, 1100, 40, 0, 60, 60, 0, 0]
+    # 1000 ticks: 300 idle + 20 iowait + 45 steal -> 63.5% busy, 4.5% stolen
+    assert machine_cpu_pct(a, b) == {'busy': 63.5, 'steal': 4.5}
+    assert machine_cpu_pct(None, b) == {} and machine_cpu_pct(a, a) == {}
+    now = cpu_ticks()
+    assert now is None or len(now) >= 8
+    d = RunData(CourseInfo('rocks-6cm', 0, 0.4, 1.0, 1.75, 2.15), 'littledog')
+    d.machine_cpu_pct = machine_cpu_pct(a, b)
+    s = compute_summary(d)
+    assert s['machine_cpu_pct'] == {'busy': 63.5, 'steal': 4.5}
+    assert 'machine        64% busy, 4.5% stolen by the host' in format_summary(s)
+
+
 def test_the_monitor_keeps_each_nodes_latest_integer_counters():
     from types import SimpleNamespace as NS
     from terrain_ros.tools.demo import Monitor

@@ -768,7 +768,9 @@ def _default_run_dir(args) -> Path:
 
 
 def run(args) -> int:
+    from terrain_ros.report import cpu_ticks, machine_cpu_pct
     wall0 = time.monotonic()
+    ticks0 = cpu_ticks()
     run_dir = (args.run_dir or _default_run_dir(args)).resolve()
     if run_dir.exists() and any(run_dir.iterdir()):
         raise ToolError(f'run directory {str(run_dir)!r} exists and is not empty')
@@ -850,6 +852,7 @@ def run(args) -> int:
         status[name] = {**status.get(name, {}), **st}
     data.nodes = {k: {kk: vv for kk, vv in v.items()} for k, v in status.items()}
     data.sim_time_s, data.wall_time_s, data.end_reason = sim_t, wall, end_reason
+    data.machine_cpu_pct = machine_cpu_pct(ticks0, cpu_ticks())
     if args.replay is not None:
         data.notes.append(f'replay of {args.replay}: robot, course and seed are the command '
                           'line\'s (--robot/--course/--seed), not read from the bag')
