@@ -478,6 +478,21 @@ def isolated_cells(h, obs, few, min_neighbours, gate_m, island_cells, out):
 
 
 
+@njit(inline='always', **_JIT)
+def _nearest_first(c0, s):
+    """The ``s``-th column (0, 1, ...) around column ``c0``, nearest first: c0, c0 - 1,
+    c0 + 1, c0 - 2, ..."""
+    return c0 + ((s + 1) // 2) * (1 if s % 2 == 0 else -1)
+
+
+@njit(inline='always', **_JIT)
+def _gap(a, q, origin, cell):
+    """How far ``q`` lies outside column ``a``'s interval ``[origin + a cell, origin + (a + 1)
+    cell]`` (0 inside), less 1e-9 m (a point's column comes from a rounded division)."""
+    g = max(origin + a * cell - q, q - (origin + (a + 1) * cell), 0.0)
+    return max(g - 1e-9, 0.0)
+
+
 @njit(types.void(_in_f8_2d, _in_i8_1d, _in_i8_1d, _f8, _f8, _f8, _i8, _i8, _in_f8_2d, _f8,
                  _f8_1d, _i8_1d), **_JIT)
 def nearest_in_columns(pts, order, starts, x0, y0, cell, nx, ny, query, bound, dist, idx):
@@ -506,20 +521,18 @@ def nearest_in_columns(pts, order, starts, x0, y0, cell, nx, ny, query, bound, d
         if fi >= -reach and fi < nx + reach and fj >= -reach and fj < ny + reach:
             ci, cj = np.int64(fi), np.int64(fj)
             for sa in range(2 * reach + 1):
-                a = ci + ((sa + 1) // 2) * (1 if sa % 2 == 0 else -1)
+                a = _nearest_first(ci, sa)
                 if a < 0 or a >= nx:
                     continue
-                gx = max(x0 + a * cell - qx, qx - (x0 + (a + 1) * cell), 0.0)
-                gx = max(gx - 1e-9, 0.0)
+                gx = _gap(a, qx, x0, cell)
                 gx2 = gx * gx
                 if gx2 > best:
                     continue
                 for sb in range(2 * reach + 1):
-                    b = cj + ((sb + 1) // 2) * (1 if sb % 2 == 0 else -1)
+                    b = _nearest_first(cj, sb)
                     if b < 0 or b >= ny:
                         continue
-                    gy = max(y0 + b * cell - qy, qy - (y0 + (b + 1) * cell), 0.0)
-                    gy = max(gy - 1e-9, 0.0)
+                    gy = _gap(b, qy, y0, cell)
                     if gx2 + gy * gy > best:
                         continue
                     c = a * ny + b
