@@ -34,11 +34,11 @@ def make_executor(context=None, kind: Optional[str] = None):
 
     Why events: the classic executor rebuilds its wait set in Python before every callback.
     Under simulated time a node handles ~20 ``/clock``, joint-state, IMU and odometry messages
-    per wall second besides its real work, and that overhead was most of the nodes' CPU in the
-    closed loop (the ICP mapper: ~13k wait-set rebuilds in a 125 s run, about 4x the CPU of
-    its 50 alignments), taking cores from the capture-to-plan chain. The EventsExecutor
-    queues events from the middleware in C++ and runs simulated-time timers from clock jumps.
-    Both run every callback on one thread, in arrival order."""
+    per wall second besides its real work (the ICP mapper: ~13k wait-set rebuilds in a 125 s
+    loop), CPU taken from the two cores the capture-to-plan chain runs on. The EventsExecutor
+    queues the middleware's events in C++ and runs simulated-time timers from clock jumps; in
+    50 s loop trials the nodes' CPU fell from 236-258 to 173-212 s (docs/CLOSED_LOOP.md,
+    session 50). Both run every callback on the spinning thread."""
     kind = (kind or os.environ.get(EXECUTOR_ENV_VAR) or 'events').strip().lower()
     if kind not in ('events', 'single'):
         raise ValueError(f'{EXECUTOR_ENV_VAR}={kind!r}: use events or single')
