@@ -336,15 +336,11 @@ def stop_process(proc: subprocess.Popen, sig=signal.SIGINT, wait_s: float = 20.0
 
 
 def fast_executor(context):
-    """rclpy's EventsExecutor where available (Jazzy: rclpy.experimental), else the
-    single-threaded one. A subscriber of many topics keeps up far better with it: the classic
-    executor rebuilds its wait set on every message."""
-    try:
-        from rclpy.experimental import EventsExecutor
-        return EventsExecutor(context=context)
-    except (ImportError, TypeError):
-        from rclpy.executors import SingleThreadedExecutor
-        return SingleThreadedExecutor(context=context)
+    """rclpy's EventsExecutor where available, else the single-threaded one
+    (:func:`terrain_ros.node.make_executor`, whatever ``TERRAIN_EXECUTOR`` says: a subscriber
+    of many topics keeps up far better with it)."""
+    from terrain_ros.node import make_executor
+    return make_executor(context, 'events')
 
 
 #: The pipeline's outputs in order; a capture's stamp travels along them (stereo -> ICP mapper
