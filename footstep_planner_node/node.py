@@ -35,12 +35,14 @@ the planner cannot use yields a plan with an explanatory status and no footsteps
 from __future__ import annotations
 
 import array
+import time
 from dataclasses import dataclass
 from typing import Optional
 
 import numpy as np
 from geometry_msgs.msg import Point, PoseStamped, Vector3
 from nav_msgs.msg import OccupancyGrid, Path
+from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 from sensor_msgs.msg import Imu, PointCloud2
 from terrain_msgs.msg import ContactPatch, ContactPatchArray, Footstep as FootstepMsg
@@ -78,6 +80,15 @@ class FootstepNodeConfig:
         'beside the terrain fill rather than beside the ICP, both on the capture-to-plan path, '
         'and places the patches at the capture\'s own pose, not the previous capture\'s. '
         'Without a mapper pose yet, on arrival')
+    patches_after_plan: bool = param(
+        True, 'with patches_on_pose: find a capture\'s patches only once the plan on that '
+        'capture\'s map (/map/filled of its stamp) is out, for the plans after it: the '
+        'detector (12-19 ms of CPU) then no longer competes with the terrain fill for a core '
+        'on the capture-to-plan path, and a plan uses the previous capture\'s patches (in the '
+        'map frame, placed at that capture\'s pose; within patch_max_age_s). If no such map '
+        'comes within patches_wait_max_s, they are found then')
+    patches_wait_max_s: float = param(0.5, 'longest wait for that map [s, wall clock]', 0.0,
+                                      10.0)
     use_patches: bool = param(True, 'let salient patches lower the foothold cost')
     patch_max_age_s: float = param(2.0, 'patches older than this (vs the map stamp) are not '
                                    'used for planning [s]', 0.0, 3600.0)
@@ -206,6 +217,9 @@ class FootstepPlannerNode(Node):
         self.imu: Optional[tuple] = None          # (stamp_s, quaternion xyzw)
         self.patches_map: Optional[PatchSet] = None
         self._cloud_pending = None      # a cloud waiting for its /icp/pose (patches_on_pose)
+        # a cloud with its pose waiting for the plan of its map (patches_after_plan):
+        # (cloud, T_map_base, stamp [s], wall deadline)
+        self._patches_due: Optional[tuple] = None
         self.patches_stamp: float = -np.inf
         self.last_plan: Optional[fs.FootstepPlan] = None
         self.goals_repeated = 0
@@ -228,6 +242,9 @@ class FootstepPlannerNode(Node):
         self.create_subscription(PoseStamped, '/goal_pose', self._on_goal, RELIABLE_QOS)
         self.create_subscription(Stance, '/walking/stance', self._on_stance, LATCHED_QOS)
         self.create_timer(self.node_cfg.diagnostics_period_s, self.counters.publish)
+        # wall clock: the wait is for CPU, and simulated time may stand still
+        self.create_timer(0.05, self._patches_deadline,
+                          clock=Clock(clock_type=ClockType.STEADY_TIME))
 
     # ------------------------------------------------------------------ parameters
 
@@ -252,6 +269,10 @@ class FootstepPlannerNode(Node):
     # ------------------------------------------------------------------ inputs
 
     def _on_map(self, msg: TerrainGrid) -> None:
+        self._plan_on_map(msg)
+        self._patches_after_plan(stamp_to_sec(msg.header.stamp))
+
+    def _plan_on_map(self, msg: TerrainGrid) -> None:
         stamp = msg.header.stamp
         try:
             grid = msg_to_grid(msg)
@@ -272,6 +293,22 @@ class FootstepPlannerNode(Node):
             self.pub_cost.publish(cost_to_occupancy(grid, self.planner.cost,
                                                     self.node_cfg.cost_grid_max, stamp))
 
+    def _patches_after_plan(self, map_stamp_s: float) -> None:
+        """The waiting capture's patches, once the plan on a map of its stamp (or newer) is
+        out (patches_after_plan)."""
+        due = self._patches_due
+        if due is not None and map_stamp_s >= due[2] - 1e-9:
+            self._find_due_patches()
+
+    def _patches_deadline(self) -> None:
+        if self._patches_due is not None and time.monotonic() >= self._patches_due[3]:
+            self._find_due_patches()
+
+    def _find_due_patches(self) -> None:
+        due, self._patches_due = self._patches_due, None
+        if due is not None:
+            self._find_patches(due[0], due[1])
+
     def _now(self) -> float:
         return now_s(self)
 
@@ -285,7 +322,13 @@ class FootstepPlannerNode(Node):
         if cloud is not None and stamp_to_sec(msg.header.stamp) >= \
                 stamp_to_sec(cloud.header.stamp) - 1e-9:
             self._cloud_pending = None
-            self._find_patches(cloud)
+            if self.node_cfg.patches_after_plan:
+                self._find_due_patches()           # an older capture's, its map never came
+                self._patches_due = (cloud, self.T_map_base.copy(),
+                                     stamp_to_sec(cloud.header.stamp),
+                                     time.monotonic() + self.node_cfg.patches_wait_max_s)
+            else:
+                self._find_patches(cloud)
 
     def _on_stance(self, msg: Stance) -> None:
         try:
@@ -338,7 +381,11 @@ class FootstepPlannerNode(Node):
             return
         self._find_patches(msg)
 
-    def _find_patches(self, msg: PointCloud2) -> None:
+    def _find_patches(self, msg: PointCloud2, T_map_base: Optional[np.ndarray] = None) -> None:
+        """Contact patches of the cloud ``msg``, placed in the map at ``T_map_base`` (default:
+        the latest /icp/pose; none yet: in the camera frame)."""
+        if T_map_base is None:
+            T_map_base = self.T_map_base
         if self.imu is None:
             self.counters.bump('no_imu', 'cloud dropped: no IMU orientation received yet')
             return
@@ -361,8 +408,8 @@ class FootstepPlannerNode(Node):
             self.counters.bump('bad_cloud', f'cloud refused: {exc}')
             return
         frame = msg.header.frame_id
-        if self.T_map_base is not None:
-            patches = patches.transformed(self.T_map_base @ self.robot.T_base_camera)
+        if T_map_base is not None:
+            patches = patches.transformed(T_map_base @ self.robot.T_base_camera)
             frame = self.grid.frame_id if self.grid is not None else 'map'
             self.patches_map, self.patches_stamp = patches, t
         # Built only for a listener (the closed loop has none; a bag recorder or a viewer is

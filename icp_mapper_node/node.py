@@ -11,6 +11,10 @@ Subscriptions:
     /joint_states          sensor_msgs/JointState (sensor data): the legs' pose at each cloud's
                            stamp, so points on the robot's own legs are not mapped
                            (``self_filter_margin_m``; no filter while none has arrived)
+    /footstep_plan         terrain_msgs/FootstepPlan (reliable, transient local; only with
+                           ``model_after_plan``): its stamp tells that a capture's plan is out,
+                           so the coarse model's update need not compete with the fill and the
+                           planner for the CPU
 Publications:
     /icp/pose              geometry_msgs/PoseStamped, ``T_map_base`` of each capture (reliable)
     /icp/odom              nav_msgs/Odometry, the same with dead reckoning's twist (reliable)
@@ -19,7 +23,8 @@ Publications:
     /map/fine              terrain_msgs/TerrainGrid: elevation, observed, variance, min, max,
                            count, last_seen (reliable, transient local)
     /map/coarse            sensor_msgs/PointCloud2, the ICP model in ``map`` (reliable,
-                           transient local)
+                           transient local; every ``coarse_publish_every``-th capture, once
+                           the model holds it)
     /map/capture_poses     geometry_msgs/PoseArray, camera poses kept with the map (reliable,
                            transient local)
     ~/diagnostics          diagnostic_msgs/DiagnosticArray: counters of refused input and
@@ -38,13 +43,15 @@ from __future__ import annotations
 from dataclasses import dataclass
 from collections import deque
 from typing import Deque, Dict, Optional
+import time
 
 import numpy as np
 from geometry_msgs.msg import PoseArray, PoseStamped
 from nav_msgs.msg import Odometry
 from rclpy.node import Node
 from sensor_msgs.msg import Imu, JointState, PointCloud2
-from terrain_msgs.msg import TerrainGrid
+from rclpy.clock import Clock, ClockType
+from terrain_msgs.msg import FootstepPlan, TerrainGrid
 
 from terrain_perception.config import param
 from terrain_perception.kinematics import self_mask
@@ -92,6 +99,14 @@ class IcpMapperNodeConfig:
     imu_max_gap_s: float = param(
         0.05, 'the IMU attitude used for a cloud (use_imu_rotation_prior) must be stamped within '
         'this of it [s]; otherwise the prior is dead reckoning\'s alone', 0.0, 10.0)
+    model_after_plan: bool = param(
+        True, 'the coarse model\'s part of a capture\'s fusion (voxels, normals, index: 10-20 '
+        'ms) and /map/coarse wait until the footstep plan of that capture is out '
+        '(/footstep_plan with its stamp or a newer one), at most model_wait_max_s: the fill '
+        'and the planner have the CPU meanwhile (the next cloud finishes it first in any '
+        'case; false: right after the fine map)')
+    model_wait_max_s: float = param(0.3, 'longest wait for that plan [s, wall clock]', 0.0,
+                                    10.0)
 
 
 def _odom_key(reason: str) -> str:
@@ -133,6 +148,10 @@ class IcpMapperNode(Node):
         self._twist = None
         self._up_base: Optional[np.ndarray] = None
         self._fine_stamp = None  # stamp of a fused map not yet published
+        # a fused capture whose coarse-model part waits (model_after_plan): its stamp [s],
+        # header stamp, wall deadline and whether /map/coarse goes out after it
+        self._model_wait: Optional[tuple] = None
+        self.model_waits_timed_out = 0
         self.captures = 0
         self._joints: Deque[tuple] = deque(maxlen=2000)   # (stamp [s], q (4, 3))
         self._joint_t: Deque[float] = deque(maxlen=2000)  # the same stamps, for np.fromiter
@@ -158,6 +177,12 @@ class IcpMapperNode(Node):
             self.create_subscription(JointState, '/joint_states', self._on_joint_state,
                                      SENSOR_QOS)
         self.create_timer(c.diagnostics_period_s, self._publish_diagnostics)
+        if c.model_after_plan:
+            self.create_subscription(FootstepPlan, '/footstep_plan', self._on_plan,
+                                     LATCHED_QOS)
+            # wall clock: the wait is for CPU, and simulated time may stand still
+            self.create_timer(0.05, self._model_deadline,
+                              clock=Clock(clock_type=ClockType.STEADY_TIME))
         self.get_logger().info(f'icp_mapper: robot {self.robot.name}, fine map '
                                f'{self.mapper.fine.shape} cells of '
                                f'{self.mapper_cfg.fine_resolution_m} m')
@@ -250,10 +275,32 @@ class IcpMapperNode(Node):
         return R
 
     def _on_cloud(self, msg: PointCloud2) -> None:
+        self._finish_model()               # the last capture's, if its plan never came
         self._align_and_publish(msg)
         # the coarse model's part of the fusion, after the capture's pose and fine map went
-        # out: the fill node and the planner work on them meanwhile (IcpMapper.fuse)
+        # out: the fill node and the planner work on them meanwhile (IcpMapper.fuse); with
+        # model_after_plan only once the plan is out, as they then have the CPU to themselves
+        if self._model_wait is None or not self.node_cfg.model_after_plan:
+            self._finish_model()
+
+    def _on_plan(self, msg: FootstepPlan) -> None:
+        if self._model_wait is not None and \
+                stamp_to_sec(msg.header.stamp) >= self._model_wait[0] - 1e-6:
+            self._finish_model()
+
+    def _model_deadline(self) -> None:
+        if self._model_wait is not None and time.monotonic() >= self._model_wait[2]:
+            self.model_waits_timed_out += 1
+            self._finish_model()
+
+    def _finish_model(self) -> None:
+        """The coarse model's part of the last fusion (``IcpMapper.finish_model``) and, when
+        due, ``/map/coarse`` with that capture's stamp."""
+        wait, self._model_wait = self._model_wait, None
         self.mapper.finish_model()
+        if wait is not None and wait[3]:
+            self.pub_coarse.publish(xyz_to_cloud(self.mapper.coarse_points(),
+                                                 self.node_cfg.map_frame, wait[1]))
 
     def _align_and_publish(self, msg: PointCloud2) -> None:
         t = stamp_to_sec(msg.header.stamp)
@@ -326,10 +373,10 @@ class IcpMapperNode(Node):
         arr = PoseArray(header=make_header(c.map_frame, stamp))
         arr.poses = self._capture_pose_msgs(stamps, poses)
         self.pub_poses.publish(arr)
-        if self.mapper.counters['fused'] % c.coarse_publish_every == 1 \
-                or c.coarse_publish_every == 1:
-            self.pub_coarse.publish(xyz_to_cloud(self.mapper.coarse_points(), c.map_frame,
-                                                 stamp))
+        coarse = (self.mapper.counters['fused'] % c.coarse_publish_every == 1
+                  or c.coarse_publish_every == 1)
+        self._model_wait = (stamp_to_sec(stamp), stamp,
+                            time.monotonic() + c.model_wait_max_s, coarse)
 
     def _capture_pose_msgs(self, stamps: np.ndarray, poses: np.ndarray) -> list:
         """Pose messages of the kept capture poses, each converted once (keyed by its stamp

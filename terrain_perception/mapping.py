@@ -2111,6 +2111,11 @@ class IcpMapper:
         if not defer_model:
             self.finish_model(build_tree=False)
 
+    @property
+    def model_pending(self) -> bool:
+        """True while a fusion's coarse-model part waits for :meth:`finish_model`."""
+        return self._pending_model is not None
+
     def finish_model(self, build_tree: bool = True) -> None:
         """Do the coarse model's part of a fusion :meth:`fuse` deferred (nothing if none is
         pending) and, with ``build_tree``, build the model's KD-tree the next alignment

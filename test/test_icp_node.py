@@ -15,8 +15,9 @@ from terrain_perception.camera import PinholeCamera
 from terrain_perception.grid import ELEVATION, OBSERVED, GridMap
 from terrain_perception.robot_model import load_robot_model
 from terrain_perception.transforms import make_T, rpy_to_R
-from terrain_ros.conversions import (msg_to_grid, odometry, pose_to_matrix, sec_to_stamp,
-                                     xyz_to_cloud)
+from terrain_perception.mapping import IcpMapper
+from terrain_ros.conversions import (cloud_to_xyz, msg_to_grid, odometry, pose_to_matrix,
+                                     sec_to_stamp, xyz_to_cloud)
 from terrain_ros.qos import LATCHED_QOS, RELIABLE_QOS, SENSOR_QOS
 
 CAM = PinholeCamera.from_fov(160, 120, 50.0)
@@ -40,11 +41,11 @@ def world():
 class Harness:
     """Publishes odometry and clouds, records the node's outputs."""
 
-    def __init__(self, ros_context, executor):
+    def __init__(self, ros_context, executor, **params):
+        params = {'robot': 'littledog', 'fine_size_m': 2.0, 'diagnostics_period_s': 0.2,
+                  **params}
         self.node = IcpMapperNode(context=ros_context, parameter_overrides=[
-            Parameter('robot', value='littledog'),
-            Parameter('fine_size_m', value=2.0),
-            Parameter('diagnostics_period_s', value=0.2)])
+            Parameter(k, value=v) for k, v in params.items()])
         self.io = rclpy_node('icp_test_io', ros_context)
         executor.add_node(self.node)
         executor.add_node(self.io)
@@ -124,6 +125,53 @@ def test_node_localises_and_maps_against_ground_truth(ros_context, executor, wor
     assert len(h.capt[-1].poses) == 4
     cam_last = pose_to_matrix(h.capt[-1].poses[-1])
     assert np.linalg.norm(cam_last[:3, 3] - (T_last @ T_bc)[:3, 3]) < 3e-3
+
+
+def test_the_coarse_model_waits_for_the_captures_plan(ros_context, executor, world):
+    """With ``model_after_plan`` the coarse model's part of a capture's fusion and /map/coarse
+    wait until a /footstep_plan of that capture's stamp (not an older one) arrives, or the
+    wall-clock limit passes without one; the model is the same as done at once."""
+    from terrain_msgs.msg import FootstepPlan
+    from terrain_ros.conversions import stamp_to_sec
+    g, scene, T_bc = world
+    h = Harness(ros_context, executor, model_wait_max_s=10.0, coarse_publish_every=1)
+    coarse = []
+    h.io.create_subscription(PointCloud2, '/map/coarse', coarse.append, LATCHED_QOS)
+    pub_plan = h.io.create_publisher(FootstepPlan, '/footstep_plan', LATCHED_QOS)
+    assert spin_until(executor, lambda: pub_plan.get_subscription_count() > 0, 5.0)
+    run_walk(h, scene, T_bc, n=1)                    # one capture at t = 1.0
+    m = h.node.mapper
+    assert spin_until(executor, lambda: len(h.fine) == 1, 5.0)
+    assert m.model_pending and not coarse
+
+    def plan(t):
+        msg = FootstepPlan()
+        msg.header.stamp = sec_to_stamp(t)
+        pub_plan.publish(msg)
+    plan(0.5)                                        # an older capture's plan
+    spin_until(executor, lambda: not m.model_pending, 0.5)
+    assert m.model_pending and not coarse
+    plan(1.0)
+    assert spin_until(executor, lambda: len(coarse) == 1, 5.0)
+    assert not m.model_pending and stamp_to_sec(coarse[0].header.stamp) == 1.0
+    got = cloud_to_xyz(coarse[0]).reshape(-1, 3)
+    # the same model as a mapper that fuses at once
+    ref = IcpMapper(h.node.mapper_cfg, T_bc, m.focal_baseline_px_m)
+    ref.update(cloud_to_xyz(cloud_msg(scene, truth_pose(0), T_bc, 1.0)), truth_pose(0), 1.0)
+    np.testing.assert_allclose(got, ref.coarse_points(), atol=1e-6)
+    assert len(got) > 100 and h.node.model_waits_timed_out == 0
+
+    # without a plan the wall-clock limit finishes it
+    for n in (h.node, h.io):
+        executor.remove_node(n)
+        n.destroy_node()
+    h2 = Harness(ros_context, executor, model_wait_max_s=0.3, coarse_publish_every=1)
+    coarse2 = []
+    h2.io.create_subscription(PointCloud2, '/map/coarse', coarse2.append, LATCHED_QOS)
+    run_walk(h2, scene, T_bc, n=1)
+    assert h2.node.mapper.model_pending
+    assert spin_until(executor, lambda: len(coarse2) == 1, 5.0)
+    assert h2.node.model_waits_timed_out == 1 and not h2.node.mapper.model_pending
 
 
 def _cloud_without_z(n=100):

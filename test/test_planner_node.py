@@ -340,13 +340,17 @@ def test_bad_inputs_give_explanatory_empty_plans(ros_context, executor):
     assert plan.status == FootstepPlan.STATUS_OK
 
 
-@pytest.mark.parametrize('on_pose', [True, False])
-def test_cloud_and_imu_give_contact_patches_on_the_ground(ros_context, executor, on_pose):
+@pytest.mark.parametrize('mode', ['after_plan', 'on_pose', 'on_arrival'])
+def test_cloud_and_imu_give_contact_patches_on_the_ground(ros_context, executor, mode):
     # patches_on_pose (default): a cloud waits for the mapper's pose of its stamp, so the
     # detector runs beside the terrain fill, not the ICP; off: on the cloud's arrival.
+    # patches_after_plan (default) then waits for the plan on that capture's map as well.
+    on_pose = mode != 'on_arrival'
     params = dict(QUADRUPED_PATCHES)
     params['planner.horizon_steps'] = 8       # patches are two steps ahead (the fixation point)
     params['patches_on_pose'] = on_pose
+    params['patches_after_plan'] = mode == 'after_plan'
+    params['patches_wait_max_s'] = 10.0
     h = Harness(ros_context, executor, **params)
     T_map_base = _pose_T(0.0, 0.0)
     h.pose(T_map_base)
@@ -367,6 +371,9 @@ def test_cloud_and_imu_give_contact_patches_on_the_ground(ros_context, executor,
     if on_pose:
         assert not spin_until(executor, lambda: h.node.counters['no_imu'] > 0, 0.5)
         h.pose(T_map_base, sec=10)                           # the cloud's own pose
+        if mode == 'after_plan':
+            assert not spin_until(executor, lambda: h.node.counters['no_imu'] > 0, 0.3)
+            h.send_map(grid_to_msg(terrain), sec=10)         # its plan is out: now
     assert spin_until(executor, lambda: h.node.counters['no_imu'] == 1, 5.0)
     h.pub_imu.publish(imu)
     assert spin_until(executor, lambda: h.node.imu is not None, 5.0)
@@ -380,6 +387,13 @@ def test_cloud_and_imu_give_contact_patches_on_the_ground(ros_context, executor,
         h.pub_cloud.publish(cloud)                           # replaced before its pose came
         assert spin_until(executor, lambda: h.node.counters['cloud_without_pose'] == 1, 5.0)
         h.pose(T_map_base, sec=10)
+    if mode == 'after_plan':
+        # the plan on this capture's map comes first, without its patches; then they are found
+        assert not spin_until(executor, lambda: len(h.patches) > 0, 0.5)
+        assert h.node._patches_due is not None and h.node.patches_map is None
+        early = h.send_map(grid_to_msg(terrain), sec=10)
+        assert early.status == FootstepPlan.STATUS_OK, early.status_text
+        assert all(f.patch_index == -1 for f in early.footsteps)
     assert spin_until(executor, lambda: len(h.patches) > 0, 10.0)
     msg = h.patches[-1]
     assert msg.header.frame_id == 'map' and len(msg.patches) >= 50
@@ -394,10 +408,44 @@ def test_cloud_and_imu_give_contact_patches_on_the_ground(ros_context, executor,
         assert len(p.boundary) == 12 and p.kx <= p.ky and p.residual <= 0.002
         assert p.support_points >= 12
     # Patches feed the next plan (patch indices refer to this array).
-    plan = h.send_map(grid_to_msg(terrain), sec=10)   # same time as the cloud: fresh patches
+    plan = h.send_map(grid_to_msg(terrain), sec=10 if mode != 'after_plan' else 11)
     assert plan.status == FootstepPlan.STATUS_OK, plan.status_text
     assert any(f.patch_index >= 0 for f in plan.footsteps)
     assert all(-1 <= f.patch_index < len(msg.patches) for f in plan.footsteps)
+
+
+def test_patches_waiting_for_a_plan_are_found_when_no_map_comes(ros_context, executor):
+    """patches_after_plan: with no /map/filled of the capture within patches_wait_max_s (fill
+    node down, say) the patches are found anyway, at the capture's pose."""
+    params = dict(QUADRUPED_PATCHES)
+    params['patches_wait_max_s'] = 0.4
+    h = Harness(ros_context, executor, patch_listener=False, **params)
+    T_map_base = _pose_T(-0.05, 0.02)
+    h.pose(_pose_T(0.0, 0.0))
+    hh = np.zeros((150, 150))
+    hh[93:100, 60:90] = 0.04
+    cam = ROBOT.camera
+    half = PinholeCamera(cam.width // 2, cam.height // 2, cam.fx / 2, cam.fy / 2,
+                         (cam.width // 2 - 1) / 2.0, (cam.height // 2 - 1) / 2.0)
+    pts = raycast_points(_grid(hh), half, T_map_base @ ROBOT.T_base_camera)
+    imu = Imu()
+    imu.header.stamp.sec = 10
+    q = R_to_quat(T_map_base[:3, :3] @ ROBOT.T_base_imu[:3, :3])
+    imu.orientation.x, imu.orientation.y, imu.orientation.z, imu.orientation.w = q
+    h.pub_imu.publish(imu)
+    assert spin_until(executor, lambda: h.node.imu is not None, 5.0)
+    h.pub_cloud.publish(xyz_to_cloud(pts, 'camera_optical', 10.0))
+    assert spin_until(executor, lambda: h.node._cloud_pending is not None, 5.0)
+    h.pose(T_map_base, sec=10)
+    assert h.node._patches_due is not None and h.node.patches_map is None
+    h.pose(_pose_T(0.3, 0.0), sec=11)                # the body moved on meanwhile
+    assert spin_until(executor, lambda: h.node.patches_map is not None, 5.0)
+    v = h.node.patches_map.vertex
+    kerb = np.abs(v[:, 2] - 0.04) < 0.003
+    assert len(v) >= 50 and np.all(kerb | (np.abs(v[:, 2]) < 0.003))
+    # on the kerb (x 0.18-0.25 m) in the map: placed at the capture's pose, not the latest
+    assert kerb.sum() >= 5 and np.all((v[kerb, 0] > 0.17) & (v[kerb, 0] < 0.26))
+    assert h.node.patches_stamp == 10.0 and not h.plans
 
 
 def test_patches_feed_the_plan_without_a_listener_and_no_message_is_built(

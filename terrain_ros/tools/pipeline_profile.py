@@ -37,14 +37,17 @@ message the stage worked on):
                here): disparity, clouds, ground plane
     icp        icp_mapper's /stereo/points callback up to publishing: self filter, ICP, the
                fine map's fusion, map publishing
-    icp_model  the rest of that callback, after publishing: the coarse model's fusion and
-               KD-tree (only the next capture's ICP needs them; off the chain)
+    icp_model  the coarse model's fusion and index and /map/coarse after publishing (only the
+               next capture's ICP needs them; off the chain: the node runs them once the
+               capture's plan is out, ``model_after_plan``; here right after ``icp``)
     fill       terrain_fill's update: whichever callback (/map/fine, /map/capture_poses, or the
                emulated ``process_period_s`` timer) actually ran it
     plan_map   footstep_planner's /map/filled callback: map conversion, cost, replan
-    patches    footstep_planner's contact patches of a cloud: in its /icp/pose callback
-               (``patches_on_pose``, the cloud waits from its own callback, ``patches_in``),
-               else in the /stereo/points callback
+    patches    footstep_planner's contact patches of a cloud: after the plan on the map of
+               its capture (``patches_after_plan``, in the /map/filled callback after
+               ``plan_map``), else in its /icp/pose callback (``patches_on_pose``), the cloud
+               waiting from its own callback (``patches_in``), else in the /stereo/points
+               callback
     plan_goal  footstep_planner's /goal_pose callback (replans on a new goal; per call)
 
 and the small callbacks (odometry, IMU, joint states, stance, pose, camera info, the image
@@ -503,7 +506,7 @@ def run_profile(bag: Path, reader, robot: Tuple[str, str], library_height: Tuple
                 R.simple('camera_info', lambda m: S._on_info('right', m), raw, types[topic])
             elif topic == '/stereo/points':        # each node deserialises its own copy
                 R.simple('icp', M._align_and_publish, raw, types[topic], peek_stamp(raw))
-                R.call(('icp_model',), M.mapper.finish_model,
+                R.call(('icp_model',), M._finish_model,
                        lambda: ('icp_model', peek_stamp(raw)))
                 if P.node_cfg.find_patches:
                     # the node either finds the patches now or keeps the cloud for its pose
@@ -531,13 +534,20 @@ def run_profile(bag: Path, reader, robot: Tuple[str, str], library_height: Tuple
                 R.simple('fill_stance', F._on_stance, raw, types[topic])
                 R.simple('plan_stance', P._on_stance, raw, types[topic])
             elif topic == '/icp/pose':
-                if P._cloud_pending is not None:          # its patches run in this callback
+                if P._cloud_pending is not None and not P.node_cfg.patches_after_plan:
+                    # its patches run in this callback
                     R.simple('patches', P._on_pose, raw, types[topic],
                              stamp_key(P._cloud_pending.header.stamp))
                 else:
                     R.simple('plan_pose', P._on_pose, raw, types[topic])
             elif topic == '/map/filled':
-                R.simple('plan_map', P._on_map, raw, types[topic], peek_stamp(raw))
+                R.simple('plan_map', P._plan_on_map, raw, types[topic], peek_stamp(raw))
+                due = P._patches_due
+                if due is not None:       # patches_after_plan: the capture's, after its plan
+                    key = stamp_key(due[0].header.stamp)
+                    sec, nsec = peek_stamp(raw)
+                    R.call(('patches',), lambda: P._patches_after_plan(sec + 1e-9 * nsec),
+                           lambda: ('patches', key))
             elif topic == '/goal_pose':
                 R.simple('plan_goal', P._on_goal, raw, types[topic])
             if topic in ('/map/fine', '/map/capture_poses'):
