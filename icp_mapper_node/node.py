@@ -367,12 +367,15 @@ class IcpMapperNode(Node):
         self.pub_corr.publish(pose_stamped(self.mapper.T_map_odom, c.map_frame, stamp))
         if not res.fused:
             return
-        self._fine_stamp = stamp
-        self._publish_fine()
+        # The capture poses first: the fill starts once it has both, and the ~130 poses take
+        # a few ms of Python to convert and serialise, which it would otherwise wait for
+        # after the map arrived.
         stamps, poses = self.mapper.capture_poses()
         arr = PoseArray(header=make_header(c.map_frame, stamp))
         arr.poses = self._capture_pose_msgs(stamps, poses)
         self.pub_poses.publish(arr)
+        self._fine_stamp = stamp
+        self._publish_fine()
         coarse = (self.mapper.counters['fused'] % c.coarse_publish_every == 1
                   or c.coarse_publish_every == 1)
         self._model_wait = (stamp_to_sec(stamp), stamp,
