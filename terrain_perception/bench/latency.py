@@ -12,7 +12,7 @@ overridden, written next to the run directories, and sometimes a ``terrain-demo`
   5 ms of wall time (shipped: 20 ms at the real-time factor 0.2), and the simulator and the bag
   recorder run at normal CPU priority.
 * ``no_nice``: as shipped, but the simulator and the recorder at normal CPU priority (shipped:
-  ``nice: 19`` in the launch file and ``terrain-demo --recorder-nice 10``, applied to the
+  ``nice: 10`` in the launch file and ``terrain-demo --recorder-nice 10``, applied to the
   processes' autogroups).
 * ``timer_only``, ``clock500`` (not run by default; they measured the fifteenth session's two
   changes): as shipped, but the stereo node waits for its timer (``process_on_arrival: false``),
