@@ -81,12 +81,13 @@ class FootstepNodeConfig:
         'and places the patches at the capture\'s own pose, not the previous capture\'s. '
         'Without a mapper pose yet, on arrival')
     patches_after_plan: bool = param(
-        True, 'with patches_on_pose: find a capture\'s patches only once the plan on that '
+        False, 'with patches_on_pose: find a capture\'s patches only once the plan on that '
         'capture\'s map (/map/filled of its stamp) is out, for the plans after it: the '
         'detector (12-19 ms of CPU) then no longer competes with the terrain fill for a core '
         'on the capture-to-plan path, and a plan uses the previous capture\'s patches (in the '
         'map frame, placed at that capture\'s pose; within patch_max_age_s). If no such map '
-        'comes within patches_wait_max_s, they are found then')
+        'comes within patches_wait_max_s, they are found then (off by default: see '
+        'model_after_plan of icp_mapper)')
     patches_wait_max_s: float = param(0.5, 'longest wait for that map [s, wall clock]', 0.0,
                                       10.0)
     use_patches: bool = param(True, 'let salient patches lower the foothold cost')

@@ -134,7 +134,8 @@ def test_the_coarse_model_waits_for_the_captures_plan(ros_context, executor, wor
     from terrain_msgs.msg import FootstepPlan
     from terrain_ros.conversions import stamp_to_sec
     g, scene, T_bc = world
-    h = Harness(ros_context, executor, model_wait_max_s=10.0, coarse_publish_every=1)
+    h = Harness(ros_context, executor, model_after_plan=True, model_wait_max_s=10.0,
+                coarse_publish_every=1)
     coarse = []
     h.io.create_subscription(PointCloud2, '/map/coarse', coarse.append, LATCHED_QOS)
     pub_plan = h.io.create_publisher(FootstepPlan, '/footstep_plan', LATCHED_QOS)
@@ -165,7 +166,8 @@ def test_the_coarse_model_waits_for_the_captures_plan(ros_context, executor, wor
     for n in (h.node, h.io):
         executor.remove_node(n)
         n.destroy_node()
-    h2 = Harness(ros_context, executor, model_wait_max_s=0.3, coarse_publish_every=1)
+    h2 = Harness(ros_context, executor, model_after_plan=True, model_wait_max_s=0.3,
+                 coarse_publish_every=1)
     coarse2 = []
     h2.io.create_subscription(PointCloud2, '/map/coarse', coarse2.append, LATCHED_QOS)
     run_walk(h2, scene, T_bc, n=1)

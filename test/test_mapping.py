@@ -471,7 +471,7 @@ def test_node_yaml_holds_valid_mapper_parameters():
         'robot', 'map_frame', 'base_frame', 'use_coarse_cloud', 'odom_buffer_size',
         'odom_max_extrapolation_s', 'odom_max_speed_m_s', 'odom_max_yaw_rate_deg_s',
         'coarse_publish_every', 'diagnostics_period_s', 'self_filter_margin_m',
-        'self_filter_max_gap_s'}
+        'self_filter_max_gap_s', 'model_after_plan', 'model_wait_max_s'}
     assert set(section) <= known, set(section) - known
     cfg = load_config(mp.MapperConfig, path, 'icp_mapper')  # type and range checked
     assert cfg.fine_resolution_m == 0.01

@@ -344,7 +344,7 @@ def test_bad_inputs_give_explanatory_empty_plans(ros_context, executor):
 def test_cloud_and_imu_give_contact_patches_on_the_ground(ros_context, executor, mode):
     # patches_on_pose (default): a cloud waits for the mapper's pose of its stamp, so the
     # detector runs beside the terrain fill, not the ICP; off: on the cloud's arrival.
-    # patches_after_plan (default) then waits for the plan on that capture's map as well.
+    # patches_after_plan (off by default) then waits for the plan on that capture's map too.
     on_pose = mode != 'on_arrival'
     params = dict(QUADRUPED_PATCHES)
     params['planner.horizon_steps'] = 8       # patches are two steps ahead (the fixation point)
@@ -418,6 +418,7 @@ def test_patches_waiting_for_a_plan_are_found_when_no_map_comes(ros_context, exe
     """patches_after_plan: with no /map/filled of the capture within patches_wait_max_s (fill
     node down, say) the patches are found anyway, at the capture's pose."""
     params = dict(QUADRUPED_PATCHES)
+    params['patches_after_plan'] = True
     params['patches_wait_max_s'] = 0.4
     h = Harness(ros_context, executor, patch_listener=False, **params)
     T_map_base = _pose_T(-0.05, 0.02)
