@@ -354,18 +354,8 @@ def test_cloud_and_imu_give_contact_patches_on_the_ground(ros_context, executor,
     h = Harness(ros_context, executor, **params)
     T_map_base = _pose_T(0.0, 0.0)
     h.pose(T_map_base)
-    hh = np.zeros((150, 150))
-    hh[93:100, 60:90] = 0.04                                 # a 4 cm kerb in view
-    terrain = _grid(hh)
-    cam = ROBOT.camera
-    half = PinholeCamera(cam.width // 2, cam.height // 2, cam.fx / 2, cam.fy / 2,
-                         (cam.width // 2 - 1) / 2.0, (cam.height // 2 - 1) / 2.0)
+    terrain, pts, imu = _kerb_view(T_map_base)              # a 4 cm kerb in view
     T_map_cam = T_map_base @ ROBOT.T_base_camera
-    pts = raycast_points(terrain, half, T_map_cam)
-    imu = Imu()
-    imu.header.stamp.sec = 10
-    q = R_to_quat(T_map_base[:3, :3] @ ROBOT.T_base_imu[:3, :3])
-    imu.orientation.x, imu.orientation.y, imu.orientation.z, imu.orientation.w = q
     cloud = xyz_to_cloud(pts, 'camera_optical', 10.0)
     h.pub_cloud.publish(cloud)                               # before any IMU: counted, dropped
     if on_pose:
@@ -414,6 +404,24 @@ def test_cloud_and_imu_give_contact_patches_on_the_ground(ros_context, executor,
     assert all(-1 <= f.patch_index < len(msg.patches) for f in plan.footsteps)
 
 
+def _kerb_view(T_map_base, sec=10):
+    """Flat ground with a 4 cm kerb 0.18-0.25 m ahead of the origin: its GridMap, the
+    half-resolution camera's cloud points from ``T_map_base`` and an IMU message of that
+    attitude stamped ``sec``."""
+    hh = np.zeros((150, 150))
+    hh[93:100, 60:90] = 0.04
+    terrain = _grid(hh)
+    cam = ROBOT.camera
+    half = PinholeCamera(cam.width // 2, cam.height // 2, cam.fx / 2, cam.fy / 2,
+                         (cam.width // 2 - 1) / 2.0, (cam.height // 2 - 1) / 2.0)
+    pts = raycast_points(terrain, half, T_map_base @ ROBOT.T_base_camera)
+    imu = Imu()
+    imu.header.stamp.sec = sec
+    q = R_to_quat(T_map_base[:3, :3] @ ROBOT.T_base_imu[:3, :3])
+    imu.orientation.x, imu.orientation.y, imu.orientation.z, imu.orientation.w = q
+    return terrain, pts, imu
+
+
 def test_patches_waiting_for_a_plan_are_found_when_no_map_comes(ros_context, executor):
     """patches_after_plan: with no /map/filled of the capture within patches_wait_max_s (fill
     node down, say) the patches are found anyway, at the capture's pose."""
@@ -423,16 +431,7 @@ def test_patches_waiting_for_a_plan_are_found_when_no_map_comes(ros_context, exe
     h = Harness(ros_context, executor, patch_listener=False, **params)
     T_map_base = _pose_T(-0.05, 0.02)
     h.pose(_pose_T(0.0, 0.0))
-    hh = np.zeros((150, 150))
-    hh[93:100, 60:90] = 0.04
-    cam = ROBOT.camera
-    half = PinholeCamera(cam.width // 2, cam.height // 2, cam.fx / 2, cam.fy / 2,
-                         (cam.width // 2 - 1) / 2.0, (cam.height // 2 - 1) / 2.0)
-    pts = raycast_points(_grid(hh), half, T_map_base @ ROBOT.T_base_camera)
-    imu = Imu()
-    imu.header.stamp.sec = 10
-    q = R_to_quat(T_map_base[:3, :3] @ ROBOT.T_base_imu[:3, :3])
-    imu.orientation.x, imu.orientation.y, imu.orientation.z, imu.orientation.w = q
+    _, pts, imu = _kerb_view(T_map_base)
     h.pub_imu.publish(imu)
     assert spin_until(executor, lambda: h.node.imu is not None, 5.0)
     h.pub_cloud.publish(xyz_to_cloud(pts, 'camera_optical', 10.0))
@@ -464,17 +463,7 @@ def test_patches_feed_the_plan_without_a_listener_and_no_message_is_built(
     h = Harness(ros_context, executor, patch_listener=False, **params)
     T_map_base = _pose_T(0.0, 0.0)
     h.pose(T_map_base)
-    hh = np.zeros((150, 150))
-    hh[93:100, 60:90] = 0.04
-    terrain = _grid(hh)
-    cam = ROBOT.camera
-    half = PinholeCamera(cam.width // 2, cam.height // 2, cam.fx / 2, cam.fy / 2,
-                         (cam.width // 2 - 1) / 2.0, (cam.height // 2 - 1) / 2.0)
-    pts = raycast_points(terrain, half, T_map_base @ ROBOT.T_base_camera)
-    imu = Imu()
-    imu.header.stamp.sec = 10
-    q = R_to_quat(T_map_base[:3, :3] @ ROBOT.T_base_imu[:3, :3])
-    imu.orientation.x, imu.orientation.y, imu.orientation.z, imu.orientation.w = q
+    terrain, pts, imu = _kerb_view(T_map_base)
     h.pub_imu.publish(imu)
     assert spin_until(executor, lambda: h.node.imu is not None, 5.0)
     assert h.node.pub_patches.get_subscription_count() == 0
