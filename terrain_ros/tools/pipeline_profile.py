@@ -38,8 +38,9 @@ message the stage worked on):
     icp        icp_mapper's /stereo/points callback up to publishing: self filter, ICP, the
                fine map's fusion, map publishing
     icp_model  the coarse model's fusion and index and /map/coarse after publishing (only the
-               next capture's ICP needs them; off the chain: the node runs them once the
-               capture's plan is out, ``model_after_plan``; here right after ``icp``)
+               next capture's ICP needs them; off the chain: the node runs them right
+               after, or with ``model_after_plan`` once the capture's plan is out; here
+               right after ``icp``)
     fill       terrain_fill's update: whichever callback (/map/fine, /map/capture_poses, or the
                emulated ``process_period_s`` timer) actually ran it
     plan_map   footstep_planner's /map/filled callback: map conversion, cost, replan
