@@ -243,9 +243,10 @@ class FootstepPlannerNode(Node):
         self.create_subscription(PoseStamped, '/goal_pose', self._on_goal, RELIABLE_QOS)
         self.create_subscription(Stance, '/walking/stance', self._on_stance, LATCHED_QOS)
         self.create_timer(self.node_cfg.diagnostics_period_s, self.counters.publish)
-        # wall clock: the wait is for CPU, and simulated time may stand still
-        self.create_timer(0.05, self._patches_deadline,
-                          clock=Clock(clock_type=ClockType.STEADY_TIME))
+        if self.node_cfg.patches_after_plan:
+            # wall clock: the wait is for CPU, and simulated time may stand still
+            self.create_timer(0.05, self._patches_deadline,
+                              clock=Clock(clock_type=ClockType.STEADY_TIME))
 
     # ------------------------------------------------------------------ parameters
 
