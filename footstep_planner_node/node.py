@@ -35,14 +35,12 @@ the planner cannot use yields a plan with an explanatory status and no footsteps
 from __future__ import annotations
 
 import array
-import time
 from dataclasses import dataclass
 from typing import Optional
 
 import numpy as np
 from geometry_msgs.msg import Point, PoseStamped, Vector3
 from nav_msgs.msg import OccupancyGrid, Path
-from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 from sensor_msgs.msg import Imu, PointCloud2
 from terrain_msgs.msg import ContactPatch, ContactPatchArray, Footstep as FootstepMsg
@@ -75,21 +73,12 @@ class FootstepNodeConfig:
                        'gait defaults)')
     find_patches: bool = param(True, 'run the contact-patch detector on /stereo/points')
     patches_on_pose: bool = param(
-        True, 'find a cloud\'s contact patches when the mapper\'s pose for its stamp arrives '
-        '(/icp/pose) instead of on the cloud\'s arrival: the detector (~12 ms of CPU) then runs '
-        'beside the terrain fill rather than beside the ICP, both on the capture-to-plan path, '
-        'and places the patches at the capture\'s own pose, not the previous capture\'s. '
-        'Without a mapper pose yet, on arrival')
-    patches_after_plan: bool = param(
-        False, 'with patches_on_pose: find a capture\'s patches only once the plan on that '
-        'capture\'s map (/map/filled of its stamp) is out, for the plans after it: the '
-        'detector (12-19 ms of CPU) then no longer competes with the terrain fill for a core '
-        'on the capture-to-plan path, and a plan uses the previous capture\'s patches (in the '
-        'map frame, placed at that capture\'s pose; within patch_max_age_s). If no such map '
-        'comes within patches_wait_max_s, they are found then (off by default: see '
-        'model_after_plan of icp_mapper)')
-    patches_wait_max_s: float = param(0.5, 'longest wait for that map [s, wall clock]', 0.0,
-                                      10.0)
+        True, 'place a cloud\'s contact patches at the mapper\'s pose for its stamp '
+        '(/icp/pose), not the latest one: the detector (12-19 ms of CPU) runs on the cloud\'s '
+        'arrival, beside the ICP (this node is idle then; run when the pose came, it competed '
+        'with the terrain fill and the mapper\'s coarse model for the 2 cores), and its '
+        'patches wait in the camera frame for that pose. Without a mapper pose yet, they are '
+        'published in the camera frame on arrival')
     use_patches: bool = param(True, 'let salient patches lower the foothold cost')
     patch_max_age_s: float = param(2.0, 'patches older than this (vs the map stamp) are not '
                                    'used for planning [s]', 0.0, 3600.0)
@@ -217,10 +206,9 @@ class FootstepPlannerNode(Node):
         self.goal_xy: Optional[np.ndarray] = None
         self.imu: Optional[tuple] = None          # (stamp_s, quaternion xyzw)
         self.patches_map: Optional[PatchSet] = None
-        self._cloud_pending = None      # a cloud waiting for its /icp/pose (patches_on_pose)
-        # a cloud with its pose waiting for the plan of its map (patches_after_plan):
-        # (cloud, T_map_base, stamp [s], wall deadline)
-        self._patches_due: Optional[tuple] = None
+        # a cloud's patches (camera frame) waiting for its /icp/pose (patches_on_pose):
+        # (PatchSet, stamp [s], header stamp, frame id)
+        self._patches_pending: Optional[tuple] = None
         self.patches_stamp: float = -np.inf
         self.last_plan: Optional[fs.FootstepPlan] = None
         self.goals_repeated = 0
@@ -243,10 +231,6 @@ class FootstepPlannerNode(Node):
         self.create_subscription(PoseStamped, '/goal_pose', self._on_goal, RELIABLE_QOS)
         self.create_subscription(Stance, '/walking/stance', self._on_stance, LATCHED_QOS)
         self.create_timer(self.node_cfg.diagnostics_period_s, self.counters.publish)
-        if self.node_cfg.patches_after_plan:
-            # wall clock: the wait is for CPU, and simulated time may stand still
-            self.create_timer(0.05, self._patches_deadline,
-                              clock=Clock(clock_type=ClockType.STEADY_TIME))
 
     # ------------------------------------------------------------------ parameters
 
@@ -272,7 +256,6 @@ class FootstepPlannerNode(Node):
 
     def _on_map(self, msg: TerrainGrid) -> None:
         self._plan_on_map(msg)
-        self._patches_after_plan(stamp_to_sec(msg.header.stamp))
 
     def _plan_on_map(self, msg: TerrainGrid) -> None:
         stamp = msg.header.stamp
@@ -295,22 +278,6 @@ class FootstepPlannerNode(Node):
             self.pub_cost.publish(cost_to_occupancy(grid, self.planner.cost,
                                                     self.node_cfg.cost_grid_max, stamp))
 
-    def _patches_after_plan(self, map_stamp_s: float) -> None:
-        """The waiting capture's patches, once the plan on a map of its stamp (or newer) is
-        out (patches_after_plan)."""
-        due = self._patches_due
-        if due is not None and map_stamp_s >= due[2] - 1e-9:
-            self._find_due_patches()
-
-    def _patches_deadline(self) -> None:
-        if self._patches_due is not None and time.monotonic() >= self._patches_due[3]:
-            self._find_due_patches()
-
-    def _find_due_patches(self) -> None:
-        due, self._patches_due = self._patches_due, None
-        if due is not None:
-            self._find_patches(due[0], due[1])
-
     def _now(self) -> float:
         return now_s(self)
 
@@ -320,17 +287,10 @@ class FootstepPlannerNode(Node):
         except ValueError as exc:
             self.counters.bump('bad_pose', f'/icp/pose refused: {exc}')
             return
-        cloud = self._cloud_pending
-        if cloud is not None and stamp_to_sec(msg.header.stamp) >= \
-                stamp_to_sec(cloud.header.stamp) - 1e-9:
-            self._cloud_pending = None
-            if self.node_cfg.patches_after_plan:
-                self._find_due_patches()           # an older capture's, its map never came
-                self._patches_due = (cloud, self.T_map_base.copy(),
-                                     stamp_to_sec(cloud.header.stamp),
-                                     time.monotonic() + self.node_cfg.patches_wait_max_s)
-            else:
-                self._find_patches(cloud)
+        pending = self._patches_pending
+        if pending is not None and stamp_to_sec(msg.header.stamp) >= pending[1] - 1e-9:
+            self._patches_pending = None
+            self._place_patches(*pending, self.T_map_base)
 
     def _on_stance(self, msg: Stance) -> None:
         try:
@@ -375,27 +335,28 @@ class FootstepPlannerNode(Node):
     def _on_cloud(self, msg: PointCloud2) -> None:
         if not self.node_cfg.find_patches:
             return
-        if self.node_cfg.patches_on_pose and self.T_map_base is not None:
-            if self._cloud_pending is not None:
-                self.counters.bump('cloud_without_pose', 'no /icp/pose at or after a cloud\'s '
-                                   'stamp came before the next cloud: its patches skipped')
-            self._cloud_pending = msg
+        found = self._detect_patches(msg)
+        if found is None:
             return
-        self._find_patches(msg)
+        if self.node_cfg.patches_on_pose and self.T_map_base is not None:
+            if self._patches_pending is not None:
+                self.counters.bump('cloud_without_pose', 'no /icp/pose at or after a cloud\'s '
+                                   'stamp came before the next cloud: its patches dropped')
+            self._patches_pending = found
+            return
+        self._place_patches(*found, self.T_map_base)
 
-    def _find_patches(self, msg: PointCloud2, T_map_base: Optional[np.ndarray] = None) -> None:
-        """Contact patches of the cloud ``msg``, placed in the map at ``T_map_base`` (default:
-        the latest /icp/pose; none yet: in the camera frame)."""
-        if T_map_base is None:
-            T_map_base = self.T_map_base
+    def _detect_patches(self, msg: PointCloud2) -> Optional[tuple]:
+        """Contact patches of the cloud ``msg`` in its own frame: ``(PatchSet, stamp [s],
+        header stamp, frame id)``, or None (counted) if the cloud or the IMU is unusable."""
         if self.imu is None:
             self.counters.bump('no_imu', 'cloud dropped: no IMU orientation received yet')
-            return
+            return None
         t = stamp_to_sec(msg.header.stamp)
         if abs(t - self.imu[0]) > self.node_cfg.imu_max_age_s:
             self.counters.bump('stale_imu', f'cloud dropped: newest IMU sample is '
                                             f'{abs(t - self.imu[0]):.3f} s from the cloud')
-            return
+            return None
         try:
             xyz = cloud_to_xyz(msg)
             if xyz.ndim != 3:
@@ -408,19 +369,24 @@ class FootstepPlannerNode(Node):
             patches = find_patches(xyz, cam.fx * sx, cam.fy * sy, g, self.patch_cfg)
         except ValueError as exc:
             self.counters.bump('bad_cloud', f'cloud refused: {exc}')
-            return
-        frame = msg.header.frame_id
+            return None
+        return patches, t, msg.header.stamp, msg.header.frame_id
+
+    def _place_patches(self, patches: PatchSet, t: float, stamp, frame: str,
+                       T_map_base: Optional[np.ndarray]) -> None:
+        """Keep a cloud's patches for planning, placed in the map at ``T_map_base`` (None: no
+        mapper pose yet, published in the camera frame only), and publish them to listeners."""
         if T_map_base is not None:
             patches = patches.transformed(T_map_base @ self.robot.T_base_camera)
             frame = self.grid.frame_id if self.grid is not None else 'map'
             self.patches_map, self.patches_stamp = patches, t
         # Built only for a listener (the closed loop has none; a bag recorder or a viewer is
         # one): the message's ~1,500 boundary Points and ~130 Poses cost ~20 ms of Python
-        # per capture, while the terrain fill works on the same capture's map.
+        # per capture, on the cores the same capture's ICP and fill need.
         if self.pub_patches.get_subscription_count() > 0:
-            self.pub_patches.publish(patches_to_msg(patches, frame, msg.header.stamp))
+            self.pub_patches.publish(patches_to_msg(patches, frame, stamp))
         if self.pub_patch_markers.get_subscription_count() > 0:
-            self.pub_patch_markers.publish(self._patch_markers(patches, frame, msg.header.stamp))
+            self.pub_patch_markers.publish(self._patch_markers(patches, frame, stamp))
 
     # ------------------------------------------------------------------ planning
 

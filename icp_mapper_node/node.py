@@ -105,8 +105,8 @@ class IcpMapperNodeConfig:
         '(/footstep_plan with its stamp or a newer one), at most model_wait_max_s: the fill '
         'and the planner have the CPU meanwhile (the next cloud finishes it first in any '
         'case; false, the default: right after the fine map; session 51\'s A/B with this '
-        'and patches_after_plan on: the fill stage 4-7 ms shorter, capture-to-plan 1.02x '
-        'on the median and its p95 worse, docs/CLOSED_LOOP.md)')
+        'and the planner\'s patches after the plan too: the fill stage 4-7 ms shorter, '
+        'capture-to-plan 1.02x on the median and its p95 worse, docs/CLOSED_LOOP.md)')
     model_wait_max_s: float = param(0.3, 'longest wait for that plan [s, wall clock]', 0.0,
                                     10.0)
 

@@ -114,7 +114,7 @@ def _record_run(bag) -> list:
             h.pub_cloud.publish(xyz_to_cloud(
                 raycast_points(terrain, half, T @ ROBOT.T_base_camera), 'camera_optical',
                 float(sec)))
-            assert spin_until(ex, lambda: h.node._cloud_pending is not None, 5.0)
+            assert spin_until(ex, lambda: h.node._patches_pending is not None, 5.0)
             n = len(h.patches)
             send_pose(T, sec)                       # the cloud's pose: its patches come
             assert spin_until(ex, lambda: len(h.patches) > n, 10.0)

@@ -340,17 +340,14 @@ def test_bad_inputs_give_explanatory_empty_plans(ros_context, executor):
     assert plan.status == FootstepPlan.STATUS_OK
 
 
-@pytest.mark.parametrize('mode', ['after_plan', 'on_pose', 'on_arrival'])
+@pytest.mark.parametrize('mode', ['on_pose', 'on_arrival'])
 def test_cloud_and_imu_give_contact_patches_on_the_ground(ros_context, executor, mode):
-    # patches_on_pose (default): a cloud waits for the mapper's pose of its stamp, so the
-    # detector runs beside the terrain fill, not the ICP; off: on the cloud's arrival.
-    # patches_after_plan (off by default) then waits for the plan on that capture's map too.
-    on_pose = mode != 'on_arrival'
+    # patches_on_pose (default): a cloud's patches are found on its arrival (beside the ICP)
+    # and wait for the mapper's pose of its stamp; off: placed at the latest pose at once.
+    on_pose = mode == 'on_pose'
     params = dict(QUADRUPED_PATCHES)
     params['planner.horizon_steps'] = 8       # patches are two steps ahead (the fixation point)
     params['patches_on_pose'] = on_pose
-    params['patches_after_plan'] = mode == 'after_plan'
-    params['patches_wait_max_s'] = 10.0
     h = Harness(ros_context, executor, **params)
     T_map_base = _pose_T(0.0, 0.0)
     h.pose(T_map_base)
@@ -358,32 +355,22 @@ def test_cloud_and_imu_give_contact_patches_on_the_ground(ros_context, executor,
     T_map_cam = T_map_base @ ROBOT.T_base_camera
     cloud = xyz_to_cloud(pts, 'camera_optical', 10.0)
     h.pub_cloud.publish(cloud)                               # before any IMU: counted, dropped
-    if on_pose:
-        assert not spin_until(executor, lambda: h.node.counters['no_imu'] > 0, 0.5)
-        h.pose(T_map_base, sec=10)                           # the cloud's own pose
-        if mode == 'after_plan':
-            assert not spin_until(executor, lambda: h.node.counters['no_imu'] > 0, 0.3)
-            h.send_map(grid_to_msg(terrain), sec=10)         # its plan is out: now
     assert spin_until(executor, lambda: h.node.counters['no_imu'] == 1, 5.0)
+    assert h.node._patches_pending is None
     h.pub_imu.publish(imu)
     assert spin_until(executor, lambda: h.node.imu is not None, 5.0)
     h.pub_cloud.publish(cloud)
     if on_pose:
-        assert spin_until(executor, lambda: h.node._cloud_pending is not None, 5.0)
+        # found on arrival, in the camera frame, kept for the pose
+        assert spin_until(executor, lambda: h.node._patches_pending is not None, 5.0)
+        assert len(h.node._patches_pending[0]) >= 50 and h.node.patches_map is None
         assert not spin_until(executor, lambda: len(h.patches) > 0, 0.5)   # waits
         h.pose(T_map_base, sec=9)                            # an older pose: still waits
         assert not spin_until(executor, lambda: len(h.patches) > 0, 0.3)
-        assert h.node._cloud_pending is not None
+        assert h.node._patches_pending is not None
         h.pub_cloud.publish(cloud)                           # replaced before its pose came
         assert spin_until(executor, lambda: h.node.counters['cloud_without_pose'] == 1, 5.0)
         h.pose(T_map_base, sec=10)
-    if mode == 'after_plan':
-        # the plan on this capture's map comes first, without its patches; then they are found
-        assert not spin_until(executor, lambda: len(h.patches) > 0, 0.5)
-        assert h.node._patches_due is not None and h.node.patches_map is None
-        early = h.send_map(grid_to_msg(terrain), sec=10)
-        assert early.status == FootstepPlan.STATUS_OK, early.status_text
-        assert all(f.patch_index == -1 for f in early.footsteps)
     assert spin_until(executor, lambda: len(h.patches) > 0, 10.0)
     msg = h.patches[-1]
     assert msg.header.frame_id == 'map' and len(msg.patches) >= 50
@@ -398,7 +385,7 @@ def test_cloud_and_imu_give_contact_patches_on_the_ground(ros_context, executor,
         assert len(p.boundary) == 12 and p.kx <= p.ky and p.residual <= 0.002
         assert p.support_points >= 12
     # Patches feed the next plan (patch indices refer to this array).
-    plan = h.send_map(grid_to_msg(terrain), sec=10 if mode != 'after_plan' else 11)
+    plan = h.send_map(grid_to_msg(terrain), sec=10)
     assert plan.status == FootstepPlan.STATUS_OK, plan.status_text
     assert any(f.patch_index >= 0 for f in plan.footsteps)
     assert all(-1 <= f.patch_index < len(msg.patches) for f in plan.footsteps)
@@ -422,24 +409,23 @@ def _kerb_view(T_map_base, sec=10):
     return terrain, pts, imu
 
 
-def test_patches_waiting_for_a_plan_are_found_when_no_map_comes(ros_context, executor):
-    """patches_after_plan: with no /map/filled of the capture within patches_wait_max_s (fill
-    node down, say) the patches are found anyway, at the capture's pose."""
+def test_patches_are_placed_at_the_captures_pose(ros_context, executor):
+    """patches_on_pose: found when the cloud arrives (the latest pose then is the previous
+    capture's), placed at the mapper's pose of the cloud's stamp when it comes."""
     params = dict(QUADRUPED_PATCHES)
-    params['patches_after_plan'] = True
-    params['patches_wait_max_s'] = 0.4
     h = Harness(ros_context, executor, patch_listener=False, **params)
     T_map_base = _pose_T(-0.05, 0.02)
-    h.pose(_pose_T(0.0, 0.0))
+    h.pose(_pose_T(0.0, 0.0))                        # the previous capture's pose
     _, pts, imu = _kerb_view(T_map_base)
     h.pub_imu.publish(imu)
     assert spin_until(executor, lambda: h.node.imu is not None, 5.0)
     h.pub_cloud.publish(xyz_to_cloud(pts, 'camera_optical', 10.0))
-    assert spin_until(executor, lambda: h.node._cloud_pending is not None, 5.0)
-    h.pose(T_map_base, sec=10)
-    assert h.node._patches_due is not None and h.node.patches_map is None
-    h.pose(_pose_T(0.3, 0.0), sec=11)                # the body moved on meanwhile
+    assert spin_until(executor, lambda: h.node._patches_pending is not None, 5.0)
+    assert h.node.patches_map is None
+    h.pose(T_map_base, sec=10)                       # this capture's pose
     assert spin_until(executor, lambda: h.node.patches_map is not None, 5.0)
+    h.pose(_pose_T(0.3, 0.0), sec=11)                # the body moved on meanwhile
+    assert not spin_until(executor, lambda: h.node._patches_pending is not None, 0.2)
     v = h.node.patches_map.vertex
     kerb = np.abs(v[:, 2] - 0.04) < 0.003
     assert len(v) >= 50 and np.all(kerb | (np.abs(v[:, 2]) < 0.003))

@@ -44,11 +44,9 @@ message the stage worked on):
     fill       terrain_fill's update: whichever callback (/map/fine, /map/capture_poses, or the
                emulated ``process_period_s`` timer) actually ran it
     plan_map   footstep_planner's /map/filled callback: map conversion, cost, replan
-    patches    footstep_planner's contact patches of a cloud: after the plan on the map of
-               its capture (``patches_after_plan``, in the /map/filled callback after
-               ``plan_map``), else in its /icp/pose callback (``patches_on_pose``), the cloud
-               waiting from its own callback (``patches_in``), else in the /stereo/points
-               callback
+    patches    footstep_planner's /stereo/points callback: the cloud's deserialisation and
+               its contact patches (placed at the capture's pose in the /icp/pose callback,
+               ``plan_pose``, with ``patches_on_pose``)
     plan_goal  footstep_planner's /goal_pose callback (replans on a new goal; per call)
 
 and the small callbacks (odometry, IMU, joint states, stance, pose, camera info, the image
@@ -124,7 +122,7 @@ PARAM_FILES = ('stereo_node.yaml', 'icp_mapper.yaml', 'terrain_fill.yaml',
 CHAIN = ('stereo', 'icp', 'fill', 'plan_map')
 STAGES = CHAIN + ('icp_model', 'patches', 'plan_goal')
 SMALL = ('stereo_input', 'camera_info', 'icp_odom', 'icp_imu', 'icp_joints', 'icp_coarse',
-         'fill_input', 'fill_stance', 'plan_imu', 'plan_pose', 'plan_stance', 'patches_in')
+         'fill_input', 'fill_stance', 'plan_imu', 'plan_pose', 'plan_stance')
 # Stages whose calls belong to one capture (the stamp of the message they work on).
 PER_CAPTURE = ('stereo', 'icp', 'icp_model', 'fill', 'plan_map', 'patches')
 
@@ -510,11 +508,7 @@ def run_profile(bag: Path, reader, robot: Tuple[str, str], library_height: Tuple
                 R.call(('icp_model',), M._finish_model,
                        lambda: ('icp_model', peek_stamp(raw)))
                 if P.node_cfg.find_patches:
-                    # the node either finds the patches now or keeps the cloud for its pose
-                    R.call(('patches', 'patches_in'),
-                           lambda: P._on_cloud(deserialize_message(raw, types[topic])),
-                           lambda: ('patches_in' if P._cloud_pending is not None
-                                    else 'patches', peek_stamp(raw)))
+                    R.simple('patches', P._on_cloud, raw, types[topic], peek_stamp(raw))
             elif topic == '/stereo/points_coarse':
                 if M.node_cfg.use_coarse_cloud:
                     R.simple('icp_coarse', M._on_coarse, raw, types[topic])
@@ -535,20 +529,9 @@ def run_profile(bag: Path, reader, robot: Tuple[str, str], library_height: Tuple
                 R.simple('fill_stance', F._on_stance, raw, types[topic])
                 R.simple('plan_stance', P._on_stance, raw, types[topic])
             elif topic == '/icp/pose':
-                if P._cloud_pending is not None and not P.node_cfg.patches_after_plan:
-                    # its patches run in this callback
-                    R.simple('patches', P._on_pose, raw, types[topic],
-                             stamp_key(P._cloud_pending.header.stamp))
-                else:
-                    R.simple('plan_pose', P._on_pose, raw, types[topic])
+                R.simple('plan_pose', P._on_pose, raw, types[topic])
             elif topic == '/map/filled':
                 R.simple('plan_map', P._plan_on_map, raw, types[topic], peek_stamp(raw))
-                due = P._patches_due
-                if due is not None:       # patches_after_plan: the capture's, after its plan
-                    key = stamp_key(due[0].header.stamp)
-                    sec, nsec = peek_stamp(raw)
-                    R.call(('patches',), lambda: P._patches_after_plan(sec + 1e-9 * nsec),
-                           lambda: ('patches', key))
             elif topic == '/goal_pose':
                 R.simple('plan_goal', P._on_goal, raw, types[topic])
             if topic in ('/map/fine', '/map/capture_poses'):
