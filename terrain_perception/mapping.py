@@ -715,12 +715,23 @@ def fake_information(d: np.ndarray, w: np.ndarray, L: float) -> np.ndarray:
     ``j_a = [(d_i x e_a) / L, e_a]``, a in {x, y}. Times the slope variance of the normals it
     is what noise alone contributes: horizontal-ish normals that fix x, y and yaw on flat
     ground, and (through the lever arm) a little roll and pitch, never z."""
+    # Closed form from the weighted moments of d (~20 us instead of two (N, 6) products):
+    # j_x = [0, dz/L, -dy/L, 1, 0, 0] and j_y = [-dz/L, 0, dx/L, 0, 1, 0].
+    d = np.asarray(d, dtype=np.float64)
+    w = np.asarray(w, dtype=np.float64)
+    W = float(w.sum())
+    m = (w @ d) / L                          # first moments / L
+    S = (d.T @ (d * w[:, None])) / (L * L)   # second moments / L^2
     F = np.zeros((6, 6))
-    for a in (0, 1):
-        e = np.zeros(3)
-        e[a] = 1.0
-        j = np.hstack([np.cross(d, e) / L, np.broadcast_to(e, d.shape)])
-        F += (j * w[:, None]).T @ j
+    F[0, 0] = F[1, 1] = S[2, 2]
+    F[2, 2] = S[0, 0] + S[1, 1]
+    F[1, 2] = F[2, 1] = -S[1, 2]
+    F[0, 2] = F[2, 0] = -S[0, 2]
+    F[1, 3] = F[3, 1] = m[2]
+    F[2, 3] = F[3, 2] = -m[1]
+    F[0, 4] = F[4, 0] = -m[2]
+    F[2, 4] = F[4, 2] = m[0]
+    F[3, 3] = F[4, 4] = W
     return F
 
 

@@ -680,3 +680,25 @@ def test_kolter_features_equal_the_previous_code(walk):
                     np.testing.assert_allclose(a[name], b[name], rtol=1e-9, atol=1e-12)
                 else:
                     assert a[name].tobytes() == b[name].tobytes(), name
+
+
+# --- the ICP mapper (mapping.py) -------------------------------------------------------------
+def test_fake_information_closed_form_equals_the_sum_over_points(walk):
+    """The noise information of the degeneracy test from the weighted moments of the lever arms
+    instead of the per-point Jacobians: equal within rounding on lever arms of the fill walk's
+    terrain (map cells seen from the body) and on a few points."""
+    from terrain_perception.mapping import fake_information
+    rng = np.random.default_rng(3)
+    cases = []
+    for g, _, _ in walk[::4]:
+        h = np.asarray(g[ELEVATION], np.float64)
+        ii, jj = np.nonzero(np.isfinite(h))
+        pts = np.c_[ii * 0.01, jj * 0.01, h[ii, jj]]
+        cases.append(pts - pts.mean(axis=0) + [0.3, 0.0, -0.15])
+    cases += [rng.normal(0.0, 0.2, (7, 3)), np.array([[0.2, -0.1, -0.14]])]
+    for d in cases:
+        w = rng.random(len(d))
+        for L in (0.5, 0.12):
+            a, b = fake_information(d, w / w.sum(), L), ref.fake_information(d, w / w.sum(), L)
+            np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-14 * np.abs(b).max())
+            np.testing.assert_array_equal(a, a.T)
