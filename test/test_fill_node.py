@@ -220,6 +220,40 @@ def test_queued_grids_are_coalesced_to_the_newest(ros_context, executor, library
     assert node.published == 1
 
 
+def test_poses_ahead_of_their_grid_wait_one_period_for_it(ros_context, executor,
+                                                        library_dir):
+    """The mapper publishes a capture's poses before its grid: a timer tick between the two
+    keeps the poses for the grid (no fill of the previous grid with them), the grid then pairs
+    at once; poses whose grid never comes are processed at the next tick."""
+    truth, seen, cam = scene()
+    h = Harness(ros_context, executor, library_dir, process_period_s=60.0)
+    node = h.node
+
+    def poses(stamp):
+        msg = poses_msg([cam])
+        msg.header.stamp = grid_msg(truth, seen, stamp).header.stamp
+        return msg
+    node._on_grid(grid_msg(truth, seen, 10.0))
+    node._on_poses(poses(10.0))                       # paired: at once
+    assert node.published == 1
+    node._on_poses(poses(11.0))                       # the next capture's poses come first
+    node._on_timer()
+    assert node.published == 1 and node._poses_msg is not None    # kept for their grid
+    seen_11 = seen.copy()
+    seen_11[:, :3] = False
+    node._on_grid(grid_msg(truth, seen_11, 11.0))     # pairs at once
+    assert node.published == 2 and node.last_output.stamp_s == pytest.approx(11.0)
+    node._on_poses(poses(12.0))                       # a grid that never comes
+    node._on_timer()
+    assert node.published == 2
+    node._on_timer()                                  # one period later: processed anyway
+    assert node.published == 3 and node._poses_msg is None
+    assert node.last_output.stamp_s == pytest.approx(11.0)
+    node._on_poses(poses(11.0))                       # not newer than the grid held: at once
+    node._on_timer()
+    assert node.published == 4
+
+
 def test_blind_area_is_published_unknown(ros_context, executor, library_dir):
     """Cells no capture looked at (here: without poses, all unobserved ones) stay NaN and are
     not marked filled; with filler.blind_area texture they are filled."""

@@ -471,8 +471,8 @@ def run_profile(bag: Path, reader, robot: Tuple[str, str], library_height: Tuple
             # the fill node's process_period_s timer: input it could not pair at once
             if fill_dirty_since is not None and F._dirty \
                     and t_ns - fill_dirty_since >= period_ns:
-                fill(F._process, None, None)
-                fill_dirty_since = None
+                fill(F._on_timer, None, None)
+                fill_dirty_since = t_ns if F._dirty else None   # held poses: one more period
             if topic in IMAGE_TOPICS:
                 if tail_start_ns is not None:
                     continue
