@@ -21,6 +21,7 @@ Subscriptions:
                            linearly at the physics rate from ``header.stamp`` (0 = on receipt)
     /joint_commands_state  sensor_msgs/JointState (reliable): position (+ velocity) targets
     /capture_request       std_msgs/Header (reliable): render a pair at or after its stamp
+                           (one already rendered at or after it serves it)
 
 A command naming an unknown joint, holding NaN / inf, outside a joint's limits or malformed is
 refused as a whole with a logged reason (counted in ``~/diagnostics``); the robot keeps tracking
@@ -211,7 +212,12 @@ class SimBridgeNode(Node):
 
     def _on_capture_request(self, msg: Header) -> None:
         t = stamp_to_sec(msg.stamp)
+        before = self.session.requests_already_served
         self.session.request_capture(t if t > 0 else None)
+        if self.session.requests_already_served > before:
+            self.counters.bump('capture_request_already_served',
+                               f'a capture at or after {t:.3f} s was taken before the request '
+                               'came: it serves it', self.get_logger().info)
 
     # -- the loop -----------------------------------------------------------------------------
     def _tick(self) -> None:

@@ -343,6 +343,31 @@ def test_a_periodic_capture_right_behind_a_requested_one_is_skipped(session):
     np.testing.assert_allclose(got, [first + 0.85, first + 1.0], atol=session.dt_s + 1e-9)
 
 
+def test_a_request_for_a_time_already_captured_is_served_by_that_capture(session):
+    # The controller's request for time t can arrive while the simulator renders the periodic
+    # capture of t: that capture serves it (no second one a step later); a request for a later
+    # time still gets its own.
+    def run_until(t_end):
+        stamps = []
+        while session.t_s + session.dt_s < t_end - 1e-9:
+            session.step(1)
+            if session.capture_due():
+                stamps.append(round(session.render().stamp_s, 6))
+        return stamps
+    run_until(session.t_s + 0.6)        # serves any request an earlier test left pending
+    while not session.capture_due():
+        session.step(1)
+    first = round(session.render().stamp_s, 6)
+    served = session.requests_already_served
+    session.request_capture(first)                          # arrives after that render
+    session.request_capture(first - 0.1)
+    assert session.requests_already_served == served + 2
+    assert run_until(first + 0.3) == pytest.approx([first + 0.25], abs=session.dt_s + 1e-9)
+    session.request_capture(session.t_s + 0.02)             # a later time: its own capture
+    got = run_until(session.t_s + 0.1)
+    assert len(got) == 1 and session.requests_already_served == served + 2
+
+
 def test_scaled_camera_keeps_the_lens():
     from terrain_perception.sim.session import scaled_camera
     cam = PinholeCamera.from_fov(512, 480, 50.0)

@@ -182,6 +182,8 @@ class SimSession:
         self.camera_rate_hz = cfg.camera_rate_hz or self.model.camera_rate_hz
         self._next_capture_s = 0.0 if cfg.periodic_capture else np.inf
         self._requests: List[float] = []
+        self._last_capture_s = -np.inf
+        self.requests_already_served = 0   # requests for a time a capture was already taken at
         self.light = LightConfig(shadow=cfg.shadows)
         self.imu_model = ImuModel(imu_cfg, cfg.imu_seed, self.model.T_base_imu)
 
@@ -293,8 +295,17 @@ class SimSession:
 
     # -- captures -----------------------------------------------------------------------------
     def request_capture(self, stamp_s: Optional[float] = None) -> None:
-        """Ask for a capture at the first step at or after ``stamp_s`` (default: now)."""
-        self._requests.append(self.t_s if stamp_s is None else float(stamp_s))
+        """Ask for a capture at the first step at or after ``stamp_s`` (default: now). A
+        request for a time a capture was already taken at or after is served by it and
+        dropped: one that arrives while the periodic capture of that very step renders (the
+        controller asks when its body settles, often on a periodic slot) would otherwise be a
+        second, near-duplicate capture a few ms later, which also waits out the stereo node's
+        rate limit (~0.5 s of wall at the loop's real-time factor; session 52)."""
+        t = self.t_s if stamp_s is None else float(stamp_s)
+        if t <= self._last_capture_s + 0.5 * self.dt_s:
+            self.requests_already_served += 1
+            return
+        self._requests.append(t)
 
     def capture_due(self) -> bool:
         """True when a periodic capture or a request is due at the current time."""
@@ -305,6 +316,7 @@ class SimSession:
     def mark_captured(self) -> None:
         """Mark the due captures done without rendering (nobody listens)."""
         eps = 0.5 * self.dt_s
+        self._last_capture_s = self.t_s
         served = any(r <= self.t_s + eps for r in self._requests)
         self._requests = [r for r in self._requests if r > self.t_s + eps]
         if not np.isfinite(self._next_capture_s):
