@@ -113,9 +113,25 @@ class Counters:
         self.last_reason[key] = reason
         n = self.counts[key]
         if n == 1 or n % self._log_every == 0:
-            log = level or self._node.get_logger().warning
             suffix = '' if n == 1 else f' ({n} times so far)'
-            log(f'{key}: {reason}{suffix}')
+            self._log(level, f'{key}: {reason}{suffix}')
+
+    def _log(self, level: Callable | None, text: str) -> None:
+        # One call site per severity: rclpy fixes the severity of each call site at its first
+        # call and raises on another ('Logger severity cannot be changed between calls'), so
+        # a node whose counters logged an error once died at its next warning.
+        name = getattr(level, '__name__', 'warning') if level is not None else 'warning'
+        logger = self._node.get_logger()
+        if name == 'error':
+            logger.error(text)
+        elif name == 'fatal':
+            logger.fatal(text)
+        elif name == 'info':
+            logger.info(text)
+        elif name == 'debug':
+            logger.debug(text)
+        else:
+            logger.warning(text)
 
     def __getitem__(self, key: str) -> int:
         return self.counts[key]

@@ -407,3 +407,21 @@ def test_each_map_cell_is_registered_by_the_estimate_error_of_when_it_was_seen()
         np.eye(4), grid.shape + (4, 4)))
     with pytest.raises(ValueError, match='last_seen'):
         cell_offsets(d, GridMap.empty(0.01, (0.4, -0.2), (4, 4)), mask[:4, :4])
+
+
+def test_counters_log_at_several_severities_from_one_node(ros_context):
+    """A counter logged as an error and others as warnings (the fill node's bad_library, then
+    a bad grid) in one process: rclpy fixes each logging call site's severity, so one shared
+    call site raised 'Logger severity cannot be changed between calls' and killed the node."""
+    from rclpy.node import Node
+    from terrain_ros.node import Counters
+    node = Node('counters_severity_test', context=ros_context)
+    try:
+        c = Counters(node, publish_topic=None)
+        for _ in range(2):
+            c.bump('bad_library', 'no library', node.get_logger().error)
+            c.bump('bad_grid', 'a NaN cell')
+            c.bump('served', 'fine', node.get_logger().info)
+        assert c['bad_library'] == c['bad_grid'] == c['served'] == 2
+    finally:
+        node.destroy_node()
