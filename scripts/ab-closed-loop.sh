@@ -27,18 +27,8 @@ BENCH="$ROOT/.venv/bin/terrain-bench"
 [ -x "$BENCH" ] || BENCH=terrain-bench
 case "$OUT" in /*) ;; *) OUT="$PWD/$OUT" ;; esac
 
-TMP="$(mktemp -d)"
-cleanup() {
-  for side in a b; do git -C "$ROOT" worktree remove --force "$TMP/$side" 2>/dev/null || true; done
-  rm -rf "$TMP"
-}
-trap cleanup EXIT
-for side in a b; do
-  rev=$REV_A; [ $side = b ] && rev=$REV_B
-  git -C "$ROOT" worktree add -q --detach "$TMP/$side" "$(git -C "$ROOT" rev-parse --verify "$rev^{commit}")"
-  mkdir -p "$TMP/$side/build"
-  for d in "$ROOT"/build/*; do ln -s "$d" "$TMP/$side/build/"; done
-done
+# worktrees $TMP/a and $TMP/b of REV_A and REV_B, removed on exit
+source "$ROOT/scripts/ab-worktrees.sh"
 
 for ((s = FIRST; s < FIRST + N; s++)); do
   for side in a b; do

@@ -319,27 +319,30 @@ def test_session_captures_at_the_camera_rate_and_on_request(session):
     np.testing.assert_allclose(cap.T_world_camera, session.robot.camera_pose())
 
 
+def _captures_until(session, t_end):
+    """Step ``session`` to just before ``t_end``, rendering every due capture: their stamps."""
+    stamps = []
+    while session.t_s + session.dt_s < t_end - 1e-9:
+        session.step(1)
+        if session.capture_due():
+            stamps.append(round(session.render().stamp_s, 6))
+    return stamps
+
+
 def test_a_periodic_capture_right_behind_a_requested_one_is_skipped(session):
     # camera 4 Hz (period 0.25 s), periodic_min_gap 0.5: a periodic slot due within 0.125 s
     # after a requested capture is a near-duplicate and skipped; one 0.15 s after is kept.
-    def run_until(t_end):
-        stamps = []
-        while session.t_s + session.dt_s < t_end - 1e-9:
-            session.step(1)
-            if session.capture_due():
-                stamps.append(round(session.render().stamp_s, 6))
-        return stamps
     assert session.cfg.periodic_min_gap == 0.5
-    run_until(session.t_s + 0.6)        # serves any request an earlier test left pending
+    _captures_until(session, session.t_s + 0.6)    # serves requests earlier tests left
     while not session.capture_due():                        # to the next periodic capture
         session.step(1)
     first = round(session.render().stamp_s, 6)
     session.request_capture(first + 0.2)                    # 0.05 s before the next slot
-    got = run_until(first + 0.8)
+    got = _captures_until(session, first + 0.8)
     np.testing.assert_allclose(got, [first + 0.2, first + 0.5, first + 0.75],
                                atol=session.dt_s + 1e-9)    # first + 0.25 skipped
     session.request_capture(got[-1] + 0.1)                  # 0.15 s before the next slot
-    got = run_until(got[-1] + 0.3)
+    got = _captures_until(session, got[-1] + 0.3)
     np.testing.assert_allclose(got, [first + 0.85, first + 1.0], atol=session.dt_s + 1e-9)
 
 
@@ -347,14 +350,7 @@ def test_a_request_for_a_time_already_captured_is_served_by_that_capture(session
     # The controller's request for time t can arrive while the simulator renders the periodic
     # capture of t: that capture serves it (no second one a step later); a request for a later
     # time still gets its own.
-    def run_until(t_end):
-        stamps = []
-        while session.t_s + session.dt_s < t_end - 1e-9:
-            session.step(1)
-            if session.capture_due():
-                stamps.append(round(session.render().stamp_s, 6))
-        return stamps
-    run_until(session.t_s + 0.6)        # serves any request an earlier test left pending
+    _captures_until(session, session.t_s + 0.6)    # serves requests earlier tests left
     while not session.capture_due():
         session.step(1)
     first = round(session.render().stamp_s, 6)
@@ -362,9 +358,10 @@ def test_a_request_for_a_time_already_captured_is_served_by_that_capture(session
     session.request_capture(first)                          # arrives after that render
     session.request_capture(first - 0.1)
     assert session.requests_already_served == served + 2
-    assert run_until(first + 0.3) == pytest.approx([first + 0.25], abs=session.dt_s + 1e-9)
+    assert _captures_until(session, first + 0.3) == pytest.approx([first + 0.25],
+                                                              abs=session.dt_s + 1e-9)
     session.request_capture(session.t_s + 0.02)             # a later time: its own capture
-    got = run_until(session.t_s + 0.1)
+    got = _captures_until(session, session.t_s + 0.1)
     assert len(got) == 1 and session.requests_already_served == served + 2
 
 
