@@ -216,7 +216,6 @@ class SimBridgeNode(Node):
         self.session.request_capture(t if t > 0 else None)
         if self.session.requests_already_served > before:
             # counted, not logged: a capture taken at or after the requested time serves it
-            # (and Counters.bump logs from one call site, whose severity rclpy fixes)
             self.counters.counts['capture_request_already_served'] += 1
 
     # -- the loop -----------------------------------------------------------------------------
