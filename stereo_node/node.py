@@ -13,10 +13,13 @@ Publications:
 
 Left and right images are paired by exact header stamp in a small bounded synchroniser
 (message_filters is not available). Camera infos are the latest received per side. A complete
-pair is processed at once (``process_on_arrival``) unless the previous one was processed less
-than ``1 / max_rate_hz`` ago (node clock, simulated with ``use_sim_time``); then it waits in a
-one-slot buffer, a newer pair replaces it (counted as ``stale_pair``), and a timer processes the
-slot when the rate allows. With capture requests, only the first pair stamped at or after a
+pair is processed at once (``process_on_arrival``) unless the previous one was taken less than
+``1 / max_rate_hz`` ago; then it waits in a one-slot buffer, a newer pair replaces it (counted
+as ``stale_pair``), and a timer processes the slot when the rate allows. The rate is a bound on
+the node's CPU, so it runs on the steady (wall) clock even with ``use_sim_time``
+(``rate_clock``): on the simulated clock a simulation at a real-time factor of 0.2 held a pair five times longer than
+the bound meant (a requested capture 20-50 ms of simulated time after a periodic one waited
+~0.3-0.5 s of wall; session 53). With capture requests, only the first pair stamped at or after a
 request is processed (paper 000: pictures when the body is stable).
 
 The disparity image and the ground plane are computed only while someone subscribes to them
@@ -35,6 +38,7 @@ from typing import Dict, Optional, Tuple
 
 import numpy as np
 from rcl_interfaces.msg import SetParametersResult
+from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 from std_msgs.msg import Header
@@ -66,6 +70,10 @@ class StereoNodeConfig:
                                      '/capture_request stamp')
     max_rate_hz: float = param(15.0, 'upper bound on processed pairs per second [Hz]',
                                0.1, 1000.0)
+    rate_clock: str = param('steady', 'clock of the max_rate_hz bound and its timer: steady '
+                            '(wall time, a bound on the CPU) or node (the node\'s clock, '
+                            'simulated with use_sim_time: up to the fifty-second session; '
+                            'the latency benchmark\'s baseline)', choices=('steady', 'node'))
     sync_queue_size: int = param(10, 'unpaired images kept per side while waiting for the '
                                  'other side', 1, 1000)
     estimate_ground_plane: bool = param(True, 'fit and publish the RANSAC ground plane')
@@ -154,7 +162,9 @@ class StereoNode(Node):
         self._pipeline: Optional[StereoPipeline] = None
         self._pending: Optional[Tuple[Image, Image]] = None
         self._request_stamp: Optional[float] = None
-        self._last_taken_ns: Optional[int] = None   # node clock when a pair was last taken
+        # The rate bound's clock (see the module docstring).
+        self._rate_clock = self._make_rate_clock(self.node_cfg.rate_clock)
+        self._last_taken_ns: Optional[int] = None   # steady clock when a pair was last taken
         self.pairs_taken = 0          # pairs handed to process_pair (published or refused)
         self.frames_processed = 0
         self.planes_fitted = 0        # ground planes fitted (only while someone subscribes)
@@ -172,7 +182,8 @@ class StereoNode(Node):
                                      lambda m, s=side: self._on_info(s, m), SENSOR_QOS)
         self.create_subscription(Header, '/capture_request', self._on_capture_request,
                                  RELIABLE_QOS)
-        self._timer = self.create_timer(1.0 / self.node_cfg.max_rate_hz, self._on_timer)
+        self._timer = self.create_timer(1.0 / self.node_cfg.max_rate_hz, self._on_timer,
+                                        clock=self._rate_clock)
         self._diag_timer = self.create_timer(self.node_cfg.diagnostics_period_s,
                                              self.counters.publish)
 
@@ -200,9 +211,13 @@ class StereoNode(Node):
                 self._robot = load_robot_model(cfg.robot) if cfg.robot else None
             self._pipeline = None                # the search range is sized anew
         self._sync.queue_size = cfg.sync_queue_size
-        if cfg.max_rate_hz != old.max_rate_hz:
+        if (cfg.max_rate_hz, cfg.rate_clock) != (old.max_rate_hz, old.rate_clock):
+            if cfg.rate_clock != old.rate_clock:
+                self._rate_clock = self._make_rate_clock(cfg.rate_clock)
+                self._last_taken_ns = None      # another clock's reading means nothing here
             self.destroy_timer(self._timer)
-            self._timer = self.create_timer(1.0 / cfg.max_rate_hz, self._on_timer)
+            self._timer = self.create_timer(1.0 / cfg.max_rate_hz, self._on_timer,
+                                            clock=self._rate_clock)
         if cfg.diagnostics_period_s != old.diagnostics_period_s:
             self.destroy_timer(self._diag_timer)
             self._diag_timer = self.create_timer(cfg.diagnostics_period_s,
@@ -242,9 +257,12 @@ class StereoNode(Node):
         elif self.node_cfg.process_on_arrival:
             self._on_timer()
 
+    def _make_rate_clock(self, which: str) -> Clock:
+        return Clock(clock_type=ClockType.STEADY_TIME) if which == 'steady' else self.get_clock()
+
     def _rate_allows(self, now_ns: int) -> bool:
-        """True when no pair was taken within the last ``1 / max_rate_hz`` of the node clock
-        before ``now_ns`` (or the clock went back, e.g. a restarted simulation)."""
+        """True when no pair was taken within the last ``1 / max_rate_hz`` of the rate clock
+        before ``now_ns`` (or that clock went back, e.g. a restarted simulation)."""
         if self._last_taken_ns is None:
             return True
         elapsed = now_ns - self._last_taken_ns
@@ -253,7 +271,7 @@ class StereoNode(Node):
     def _on_timer(self) -> None:
         if self.node_cfg.capture_on_request or self._pending is None:
             return
-        now_ns = self.get_clock().now().nanoseconds
+        now_ns = self._rate_clock.now().nanoseconds
         if self._rate_allows(now_ns):
             pair, self._pending = self._pending, None
             self._last_taken_ns = now_ns

@@ -39,11 +39,13 @@ def test_baseline_is_the_earlier_settings_and_shipped_the_defaults():
     # The baseline undoes the fifteenth and sixteenth sessions' latency changes, 'fifteenth'
     # the sixteenth's; 'shipped' changes nothing.
     before = latency.VARIANTS[latency.BASELINE]
-    assert before['stereo_node'] == {'parameters': {'process_on_arrival': False}}
+    assert before['stereo_node'] == {'parameters': {'process_on_arrival': False,
+                                                    'rate_clock': 'node'}}
     bridge = yaml.safe_load((latency.LAUNCH.parent.parent / 'sim_bridge.yaml').read_text())
     shipped = bridge['sim_bridge']['ros__parameters']
     stereo = yaml.safe_load((latency.LAUNCH.parent.parent / 'stereo_node.yaml').read_text())
     assert stereo['stereo_node']['ros__parameters']['process_on_arrival'] is True
+    assert stereo['stereo_node']['ros__parameters']['rate_clock'] == 'steady'
     launch = {n['name']: n for n in yaml.safe_load(latency.LAUNCH.read_text())['nodes']}
     assert launch['sim_bridge'].get('nice', 0) > 0
     for name in (latency.BASELINE, 'fifteenth'):

@@ -6,7 +6,8 @@ overridden, written next to the run directories, and sometimes a ``terrain-demo`
 
 * ``before`` (the baseline): the settings up to the fourteenth session. The simulator publishes
   ``/clock`` at 500 Hz of simulated time and the stereo node processes a pair only on the next
-  tick of its ``max_rate_hz`` timer, which runs on the simulated clock; with the fifteenth
+  tick of its ``max_rate_hz`` timer, which runs on the simulated clock (``rate_clock: node``;
+  shipped: the steady clock since the fifty-third session); with the fifteenth
   session's simulator settings below.
 * ``fifteenth``: the fifteenth session's settings. The simulator's physics timer ticks every
   5 ms of wall time (shipped: 20 ms at the real-time factor 0.2), and the simulator and the bag
@@ -55,7 +56,8 @@ _SIXTEENTH_UNDONE = {'parameters': {'tick_period_s': 0.005}, 'nice': 0}
 VARIANTS: Dict[str, Dict[str, dict]] = {
     'before': {'sim_bridge': {'parameters': {'clock_rate_hz': 500.0,
                                              **_SIXTEENTH_UNDONE['parameters']}, 'nice': 0},
-               'stereo_node': {'parameters': {'process_on_arrival': False}},
+               'stereo_node': {'parameters': {'process_on_arrival': False,
+                                              'rate_clock': 'node'}},
                '-demo': ['--recorder-nice', '0']},
     'fifteenth': {'sim_bridge': _SIXTEENTH_UNDONE, '-demo': ['--recorder-nice', '0']},
     'no_nice': {'sim_bridge': {'nice': 0}, '-demo': ['--recorder-nice', '0']},
