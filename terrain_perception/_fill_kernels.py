@@ -27,7 +27,8 @@ machine, then loaded from ``__pycache__``.
   summed by BLAS matmul and einsum), so its heights equal ``_choose``'s within rounding
   (~1e-17 m), not bitwise; on the test walk every filled cell takes the same sample
   (``test/test_speedups.py``). ~1.3-1.8x on fill_terrain; ``feasible_argmin`` then serves
-  only a library too large for a bank.
+  only a library too large for a bank. It evaluates four samples at a time (session 53: each
+  sample's sums in the same order as one at a time, bitwise the same; 1.4x).
 
 * :func:`select_round` - the cells of a round (the numpy code: an OpenCV box filter of the
   known mask and a dilation of the keys over the candidates' bounding box, ~0.2 ms a round
@@ -204,6 +205,10 @@ def choose_block(Hpf, Kpf, Upf, corner, offs, bank, g, W, h_out, k_out):
     bj = np.empty(q, np.int64)         # its cells with a bound below +inf (-inf: none fits)
     ub = np.empty(q)
     b_all = np.empty(n)
+    s0 = np.empty(n)                   # per sample: sum C, sum W (C - A), sum W (C - A)^2
+    s1 = np.empty(n)
+    s2 = np.empty(n)
+    mx = np.empty(n)                   # and max (C - bound) over the bounded cells
     for i in range(S):
         nk = 0
         nb = 0
@@ -230,36 +235,99 @@ def choose_block(Hpf, Kpf, Upf, corner, offs, bank, g, W, h_out, k_out):
                 if u > -math.inf:
                     bounded = True
         m = float(nk)
+        check = bounded and not nan_bound
+        # Four samples at a time: each sample's sums still run over the known cells in order
+        # (the same numbers as one sample at a time, bit for bit), but the four samples'
+        # additions do not wait on one another (1.4x on the loop's recorded blocks).
+        t = 0
+        while t + 4 <= n:
+            r0 = g[i, t] * q
+            r1 = g[i, t + 1] * q
+            r2 = g[i, t + 2] * q
+            r3 = g[i, t + 3] * q
+            a0 = a1 = a2 = a3 = 0.0
+            c0 = c1 = c2 = c3 = 0.0
+            e0 = e1 = e2 = e3 = 0.0
+            for k in range(nk):
+                o = kj[k]
+                a = ka[k]
+                wk = kw[k]
+                x0 = flat[r0 + o]
+                x1 = flat[r1 + o]
+                x2 = flat[r2 + o]
+                x3 = flat[r3 + o]
+                d0 = x0 - a
+                d1 = x1 - a
+                d2 = x2 - a
+                d3 = x3 - a
+                w0 = wk * d0
+                w1 = wk * d1
+                w2 = wk * d2
+                w3 = wk * d3
+                a0 += x0
+                a1 += x1
+                a2 += x2
+                a3 += x3
+                c0 += w0
+                c1 += w1
+                c2 += w2
+                c3 += w3
+                e0 += w0 * d0
+                e1 += w1 * d1
+                e2 += w2 * d2
+                e3 += w3 * d3
+            s0[t], s0[t + 1], s0[t + 2], s0[t + 3] = a0, a1, a2, a3
+            s1[t], s1[t + 1], s1[t + 2], s1[t + 3] = c0, c1, c2, c3
+            s2[t], s2[t + 1], s2[t + 2], s2[t + 3] = e0, e1, e2, e3
+            if check:
+                m0 = m1 = m2 = m3 = -math.inf
+                for k in range(nb):
+                    o = bj[k]
+                    u = ub[k]
+                    v = flat[r0 + o] - u
+                    if v > m0:
+                        m0 = v
+                    v = flat[r1 + o] - u
+                    if v > m1:
+                        m1 = v
+                    v = flat[r2 + o] - u
+                    if v > m2:
+                        m2 = v
+                    v = flat[r3 + o] - u
+                    if v > m3:
+                        m3 = v
+                mx[t], mx[t + 1], mx[t + 2], mx[t + 3] = m0, m1, m2, m3
+            t += 4
+        while t < n:                   # the last n % 4 samples
+            r0 = g[i, t] * q
+            a0 = c0 = e0 = 0.0
+            for k in range(nk):
+                x0 = flat[r0 + kj[k]]
+                d0 = x0 - ka[k]
+                w0 = kw[k] * d0
+                a0 += x0
+                c0 += w0
+                e0 += w0 * d0
+            s0[t], s1[t], s2[t] = a0, c0, e0
+            if check:
+                m0 = -math.inf
+                for k in range(nb):
+                    v = flat[r0 + bj[k]] - ub[k]
+                    if v > m0:
+                        m0 = v
+                mx[t] = m0
+            t += 1
         best = 0
         best_v = 0.0
         nan_seen = False
         found = False
         for t in range(n):
-            base = g[i, t] * q
-            s0 = 0.0
-            s1 = 0.0
-            s2 = 0.0
-            for k in range(nk):
-                c = flat[base + kj[k]]
-                d = c - ka[k]
-                wd = kw[k] * d
-                s0 += c
-                s1 += wd
-                s2 += wd * d
-            b = (sum_a - s0) / m
+            b = (sum_a - s0[t]) / m
             b_all[t] = b
-            s = s2 + 2.0 * b * s1 + b * b * sum_w
+            s = s2[t] + 2.0 * b * s1[t] + b * b * sum_w
             ok = True
             if bounded:
-                if nan_bound:
-                    ok = False
-                else:
-                    mx = -math.inf
-                    for k in range(nb):
-                        v = flat[base + bj[k]] - ub[k]
-                        if v > mx:
-                            mx = v
-                    ok = mx + b <= 0.0
+                ok = check and mx[t] + b <= 0.0
             if ok:
                 found = True
             val = s if ok else math.inf

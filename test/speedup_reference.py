@@ -591,3 +591,125 @@ def fake_information(d: np.ndarray, w: np.ndarray, L: float) -> np.ndarray:
         j = np.hstack([np.cross(d, e) / L, np.broadcast_to(e, d.shape)])
         F += (j * w[:, None]).T @ j
     return F
+
+
+# terrain_perception._fill_kernels.choose_block before its loops were turned (sample by
+# sample, each summing over the window's known cells; session 53), compiled here (no cache).
+import math  # noqa: E402
+
+from numba import njit, types  # noqa: E402
+
+from terrain_perception._fill_kernels import _argmin_step  # noqa: E402
+
+_JIT = dict(cache=False, nogil=True, error_model='numpy')
+_in_f8_1d = types.Array(types.float64, 1, 'C', readonly=True)
+_in_b1_1d = types.Array(types.boolean, 1, 'C', readonly=True)
+_in_f8_2d = types.Array(types.float64, 2, 'C', readonly=True)
+_in_i8_1d = types.Array(types.int64, 1, 'C', readonly=True)
+_in_i8_2d = types.Array(types.int64, 2, 'C', readonly=True)
+
+
+@njit(types.void(_in_f8_1d, _in_b1_1d, _in_f8_1d, _in_i8_1d, _in_i8_1d, _in_f8_2d, _in_i8_2d,
+                 _in_f8_1d, types.float64[::1], types.int64[::1]), **_JIT)
+def choose_block(Hpf, Kpf, Upf, corner, offs, bank, g, W, h_out, k_out):
+    """Fig. 6 steps 2-3 for a block of S cells, straight from the padded maps and the patch
+    bank (no gathered ``(S, n, w^2)`` copy): cell ``i``'s window is ``corner[i] + offs``
+    (q,) in the padded heights ``Hpf``, known mask ``Kpf`` and bounds ``Upf`` (+inf = none);
+    its n samples are the bank rows ``g[i]``. Per sample, over the window's known cells, one
+    pass sums ``C``, ``W (C - A)`` and ``W (C - A)^2``; the offset is ``b = (sum A - sum C) /
+    |B|`` and the weighted error ``s = sum W (C - A + b)^2 = S2 + 2 b S1 + b^2 sum W`` (numpy's
+    ``_choose`` expands it differently, into BLAS sums: equal within rounding, not bitwise).
+    Feasibility as in numpy's code: a window with no finite bound has every sample feasible;
+    otherwise a sample is when no cell has ``C + b`` above its bound (a NaN or -inf bound:
+    none is). ``k_out[i]``: the feasible sample of least ``s`` (first on ties), or, when none
+    is feasible, the one of least squared excess over the bounds; ``h_out[i] = C_k[centre] +
+    b_k``. NaN follows numpy's argmin (the first NaN wins)."""
+    S = corner.shape[0]
+    n = g.shape[1]
+    q = offs.shape[0]
+    centre = q // 2
+    flat = bank.ravel()
+    kj = np.empty(q, np.int64)         # the window's known cells
+    ka = np.empty(q)                   # their heights
+    kw = np.empty(q)                   # their weights
+    bj = np.empty(q, np.int64)         # its cells with a bound below +inf (-inf: none fits)
+    ub = np.empty(q)
+    b_all = np.empty(n)
+    for i in range(S):
+        nk = 0
+        nb = 0
+        sum_a = 0.0
+        sum_w = 0.0
+        nan_bound = False
+        bounded = False                # numpy's test: some bound is finite
+        for j in range(q):
+            p = corner[i] + offs[j]
+            if Kpf[p]:
+                kj[nk] = j
+                ka[nk] = Hpf[p]
+                kw[nk] = W[j]
+                sum_a += Hpf[p]
+                sum_w += W[j]
+                nk += 1
+            u = Upf[p]
+            if math.isnan(u):
+                nan_bound = True
+            elif u < math.inf:
+                bj[nb] = j
+                ub[nb] = u
+                nb += 1
+                if u > -math.inf:
+                    bounded = True
+        m = float(nk)
+        best = 0
+        best_v = 0.0
+        nan_seen = False
+        found = False
+        for t in range(n):
+            base = g[i, t] * q
+            s0 = 0.0
+            s1 = 0.0
+            s2 = 0.0
+            for k in range(nk):
+                c = flat[base + kj[k]]
+                d = c - ka[k]
+                wd = kw[k] * d
+                s0 += c
+                s1 += wd
+                s2 += wd * d
+            b = (sum_a - s0) / m
+            b_all[t] = b
+            s = s2 + 2.0 * b * s1 + b * b * sum_w
+            ok = True
+            if bounded:
+                if nan_bound:
+                    ok = False
+                else:
+                    mx = -math.inf
+                    for k in range(nb):
+                        v = flat[base + bj[k]] - ub[k]
+                        if v > mx:
+                            mx = v
+                    ok = mx + b <= 0.0
+            if ok:
+                found = True
+            val = s if ok else math.inf
+            best, best_v, nan_seen = _argmin_step(t, val, best, best_v, nan_seen)
+        if not found:
+            # no feasible sample: the least squared excess over the bounds
+            best = 0
+            best_v = 0.0
+            nan_seen = False
+            for t in range(n):
+                base = g[i, t] * q
+                b = b_all[t]
+                e = 0.0
+                for j in range(q):
+                    v = flat[base + j] + b - Upf[corner[i] + offs[j]]
+                    if math.isnan(v):
+                        e = math.nan
+                    elif v > 0.0:
+                        e += v * v
+                best, best_v, nan_seen = _argmin_step(t, e, best, best_v, nan_seen)
+        k_out[i] = best
+        h_out[i] = flat[g[i, best] * q + centre] + b_all[best]

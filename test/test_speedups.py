@@ -391,6 +391,55 @@ def test_choose_block_kernel_on_ties_nan_and_inf():
     np.testing.assert_array_equal(k[:2], k1)
 
 
+def test_choose_block_equals_its_sample_by_sample_form(walk, monkeypatch):
+    """choose_block evaluating four samples at a time against the kernel before
+    (ref.choose_block: one sample at a time): each sample's sums over the known cells in the
+    same order, so heights and samples bitwise the same, on every block of fills of the walk's
+    maps under their captures' bounds, of n not a multiple of 4, and of the adversarial block
+    (ties, NaN / -inf bounds, nothing feasible, inf / NaN heights)."""
+    from terrain_perception import _fill_kernels
+    from terrain_perception.fill import FillConfig, PatchLibrary, bounds_from_captures, \
+        fill_terrain
+    from terrain_perception.config import make_config
+    live = _fill_kernels.choose_block
+    blocks = []
+
+    def both(*args):
+        live(*args)
+        h, k = np.empty_like(args[-2]), np.empty_like(args[-1])
+        ref.choose_block(*args[:-2], h, k)
+        assert h.tobytes() == args[-2].tobytes() and k.tobytes() == args[-1].tobytes()
+        blocks.append(len(h))
+
+    monkeypatch.setattr(_fill_kernels, 'choose_block', both)
+    lib = PatchLibrary(fill_library(), 5)
+    bounded = 0
+    for grid, _, _ in walk[::3]:
+        h = np.asarray(grid[ELEVATION], np.float64)
+        poses = np.array([t for _, t, _ in walk])
+        ub = bounds_from_captures(h, grid.resolution_m, grid.origin_xy, poses[:, :3, 3], 1.0,
+                                  camera_axes=poses[:, :3, 2],
+                                  fov_half_angle_rad=np.radians(40.0))
+        bounded += int(np.isfinite(ub).sum())
+        fill_terrain(h, ub, lib)
+    assert sum(blocks) > 5000 and bounded > 1000
+    n0 = sum(blocks)
+    fill_terrain(h, ub, lib, make_config(FillConfig, {'samples': 7}))   # 4 + 3 samples
+    assert sum(blocks) > n0
+    W, A, B, C, Abar = _adversarial_block()
+    A[14, 2] = np.inf
+    A[15, 0] = np.nan
+    for sl in (slice(None), slice(0, 10), slice(10, None)):
+        for n in (30, 5, 3):
+            args = _block_inputs(A[sl], B[sl], Abar[sl], np.ascontiguousarray(C[sl, :n]))
+            m = len(A[sl])
+            h1, k1 = np.empty(m), np.empty(m, np.int64)
+            h0, k0 = np.empty(m), np.empty(m, np.int64)
+            live(*args, W, h1, k1)
+            ref.choose_block(*args, W, h0, k0)
+            assert h1.tobytes() == h0.tobytes() and k1.tobytes() == k0.tobytes()
+
+
 def test_fill_kernel_equals_the_numpy_choice_on_nan_and_inf():
     """Blocks of cells with no bound, some bounds, NaN/-inf bounds, NaN/inf errors, ties and
     cells where no sample is feasible: same heights and sample indices."""

@@ -36,7 +36,10 @@ the truth) is filled by the vectorised Fill-Terrain (library prebuilt, one threa
 3 with ``--quick``)
 and by the plain per-cell loop of ``test/fill_reference.py`` (on the 60 x 60 corner with
 ``--quick``); both give the same map, which is checked. ``speedup_vs_reference`` is the ratio
-of CPU times (robust on a shared machine); the wall-clock ratio is reported beside it.
+of CPU times (robust on a shared machine); the wall-clock ratio is reported beside it. The
+compiled choice step (``_fill_kernels.choose_block``) is also timed against its previous form
+(``test/speedup_reference.py``: one library sample at a time instead of four) on the same
+200 x 200 fill, interleaved, medians of CPU time: ``kernel_speedup_vs_previous``.
 
 Node updates (:func:`node_sequence`): what ``terrain_fill_node`` does per ``/map/fine``. LittleDog
 walks +x from x = 0.4 m over ``rocks-6cm`` (seed 0, flat floor around it) taking a capture
@@ -319,6 +322,46 @@ def _load_reference():
     return mod.fill_terrain_reference
 
 
+def _previous_choose_block():
+    """``choose_block`` before it took four samples at a time (test/speedup_reference.py), or
+    None (no test folder, or the fill runs without compiled kernels)."""
+    from terrain_perception import fill as fillmod
+    path = REPO / 'test' / 'speedup_reference.py'
+    if not path.is_file() or fillmod._kernels is None:
+        return None
+    spec = importlib.util.spec_from_file_location('speedup_reference', path)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod.choose_block
+
+
+def kernel_timing(h: np.ndarray, ub: np.ndarray, lib: 'PatchLibrary', fill_cfg: FillConfig,
+                  repeats: int) -> dict:
+    """CPU time of ``fill_terrain(h, ub)`` with the live choice kernel and with its previous
+    form, interleaved; the same fill either way (checked)."""
+    from terrain_perception import _fill_kernels
+    prev = _previous_choose_block()
+    if prev is None:
+        return {'kernel_speedup_vs_previous': None}
+    live = _fill_kernels.choose_block
+    times: Dict[str, List[float]] = {'live': [], 'previous': []}
+    maps = {}
+    try:
+        for _ in range(repeats):
+            for name, kernel in (('previous', prev), ('live', live)):
+                _fill_kernels.choose_block = kernel
+                c0 = time.process_time()
+                maps[name] = fill_terrain(h, ub, lib, fill_cfg).heights
+                times[name].append(time.process_time() - c0)
+    finally:
+        _fill_kernels.choose_block = live
+    med = {k: float(np.median(v)) for k, v in times.items()}
+    return {'kernel_speedup_vs_previous': med['previous'] / med['live'],
+            'kernel_fill_cpu_s': med['live'], 'kernel_previous_fill_cpu_s': med['previous'],
+            'kernel_same_map': bool(np.array_equal(maps['live'], maps['previous'],
+                                                   equal_nan=True))}
+
+
 def timing(truth: np.ndarray, library_maps: List[np.ndarray], fill_cfg: FillConfig,
            quick: bool) -> dict:
     """Fill a 200 x 200 map with 30 % of the cells occluded; vectorised vs reference loop."""
@@ -347,7 +390,8 @@ def timing(truth: np.ndarray, library_maps: List[np.ndarray], fill_cfg: FillConf
     out = {'fill_s_200x200': float(min(walls)), 'fill_cpu_s_200x200': float(min(cpus)),
            'occluded_fraction': float(mask.mean()), 'rounds': int(res.rounds),
            'speedup_vs_reference': None, 'speedup_wall': None, 'reference_s': None,
-           'reference_cpu_s': None, 'reference_map': None}
+           'reference_cpu_s': None, 'reference_map': None,
+           **kernel_timing(h, ub, lib, fill_cfg, 3 if quick else 7)}
     ref = _load_reference()
     if ref is None:
         return out
@@ -624,6 +668,12 @@ def run(args: argparse.Namespace) -> dict:
               f'same map: {tm["reference_equal"]}')
     else:
         print('reference loop (test/fill_reference.py) not found: no speed-up measured')
+    if tm['kernel_speedup_vs_previous'] is not None:
+        print(f'compiled choice step, four samples at a time: the fill '
+              f'{tm["kernel_fill_cpu_s"]:.3f} s CPU against {tm["kernel_previous_fill_cpu_s"]:.3f}'
+              f' s with the one-sample-at-a-time kernel (test/speedup_reference.py), '
+              f'{tm["kernel_speedup_vs_previous"]:.2f}x (medians, interleaved); same map: '
+              f'{tm["kernel_same_map"]}')
 
     nd = node_sequence(quick)
     print(f'\nNode updates, LittleDog on rocks-6cm, {nd["node_captures"]} captures, 3 m grid at '
@@ -660,6 +710,8 @@ def run(args: argparse.Namespace) -> dict:
         'reference_s': tm['reference_s'],
         'reference_map': tm['reference_map'],
         'reference_equal': tm.get('reference_equal'),
+        'kernel_speedup_vs_previous': tm['kernel_speedup_vs_previous'],
+        'kernel_same_map': tm.get('kernel_same_map'),
         'per_terrain': per_terrain,
         'occluded_fraction_mean': float(np.mean(occl)),
         'n_test_terrains': len(tests),
