@@ -17,10 +17,10 @@ pair is processed at once (``process_on_arrival``) unless the previous one was t
 ``1 / max_rate_hz`` ago; then it waits in a one-slot buffer, a newer pair replaces it (counted
 as ``stale_pair``), and a timer processes the slot when the rate allows. The rate is a bound on
 the node's CPU, so it runs on the steady (wall) clock even with ``use_sim_time``
-(``rate_clock``): on the simulated clock a simulation at a real-time factor of 0.2 held a pair five times longer than
-the bound meant (a requested capture 20-50 ms of simulated time after a periodic one waited
-~0.3-0.5 s of wall; session 53). With capture requests, only the first pair stamped at or after a
-request is processed (paper 000: pictures when the body is stable).
+(``rate_clock``): on the simulated clock, a simulation at a real-time factor of 0.2 held a pair
+five times longer than the bound meant (a requested capture 20-50 ms of simulated time after a
+periodic one waited ~0.3-0.5 s of wall; session 53). With capture requests, only the first
+pair stamped at or after a request is processed (paper 000: pictures when the body is stable).
 
 The disparity image and the ground plane are computed only while someone subscribes to them
 (``always_process`` computes them regardless); the clouds are published first.
@@ -164,7 +164,7 @@ class StereoNode(Node):
         self._request_stamp: Optional[float] = None
         # The rate bound's clock (see the module docstring).
         self._rate_clock = self._make_rate_clock(self.node_cfg.rate_clock)
-        self._last_taken_ns: Optional[int] = None   # steady clock when a pair was last taken
+        self._last_taken_ns: Optional[int] = None   # rate clock when a pair was last taken
         self.pairs_taken = 0          # pairs handed to process_pair (published or refused)
         self.frames_processed = 0
         self.planes_fitted = 0        # ground planes fitted (only while someone subscribes)
