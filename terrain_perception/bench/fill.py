@@ -312,27 +312,29 @@ def write_figure(maps: dict, path: Path, scale: int = 3) -> Path:
 # --------------------------------------------------------------------------------------------
 # timing
 # --------------------------------------------------------------------------------------------
-def _load_reference():
-    path = REPO / 'test' / 'fill_reference.py'
+def _from_test_module(name: str, attr: str):
+    """``attr`` of the module ``test/NAME.py`` (an oracle kept with the tests), or None when
+    the checkout has no test folder."""
+    path = REPO / 'test' / f'{name}.py'
     if not path.is_file():
         return None
-    spec = importlib.util.spec_from_file_location('fill_reference', path)
+    spec = importlib.util.spec_from_file_location(name, path)
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)
-    return mod.fill_terrain_reference
+    return getattr(mod, attr)
+
+
+def _load_reference():
+    return _from_test_module('fill_reference', 'fill_terrain_reference')
 
 
 def _previous_choose_block():
     """``choose_block`` before it took four samples at a time (test/speedup_reference.py), or
     None (no test folder, or the fill runs without compiled kernels)."""
     from terrain_perception import fill as fillmod
-    path = REPO / 'test' / 'speedup_reference.py'
-    if not path.is_file() or fillmod._kernels is None:
+    if fillmod._kernels is None:
         return None
-    spec = importlib.util.spec_from_file_location('speedup_reference', path)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod.choose_block
+    return _from_test_module('speedup_reference', 'choose_block')
 
 
 def kernel_timing(h: np.ndarray, ub: np.ndarray, lib: 'PatchLibrary', fill_cfg: FillConfig,
