@@ -55,6 +55,32 @@ def test_unorganized_cloud_with_extra_field_round_trip():
     np.testing.assert_array_equal(cv.cloud_fields(msg, ['intensity'])[:, 0], inten)
 
 
+def test_the_xyz_only_reader_equals_the_general_one_and_owns_its_array():
+    """The stereo node's layout (x y z float32, point_step 12) is read straight from the
+    data; the same points with an extra field, or big-endian, go the general way: the same
+    values, NaN included, and the result is the reader's own (writing it leaves the message
+    alone)."""
+    pts = RNG.normal(size=(24, 32, 3)).astype(np.float32)
+    pts[1, 2] = np.nan
+    pts[5, :, 2] = -np.inf
+    fast = cv.xyz_to_cloud(pts, 'cam', 1.0)
+    wide = cv.xyz_to_cloud(pts, 'cam', 1.0, extra={'w': np.ones((24, 32), np.float32)})
+    big = cv.xyz_to_cloud(pts, 'cam', 1.0)
+    big.is_bigendian = True
+    big.data = pts.astype('>f4').tobytes()
+    before = bytes(fast.data)
+    out = cv.cloud_to_xyz(fast)
+    assert out.dtype == np.float32 and out.shape == pts.shape and out.flags.writeable
+    for other in (wide, big):
+        np.testing.assert_array_equal(cv.cloud_to_xyz(other), out)
+    np.testing.assert_array_equal(out, pts)
+    out[:] = 0.0
+    assert bytes(fast.data) == before
+    # two of three fields, and the same fields in another order, are not the whole point
+    np.testing.assert_array_equal(cv.cloud_fields(fast, ('z', 'x')), pts[..., [2, 0]])
+    np.testing.assert_array_equal(cv.cloud_fields(fast, ('y',)), pts[..., 1:2])
+
+
 def test_cloud_reader_handles_padding_float64_and_foreign_layouts():
     # A cloud as another driver might write it: float64 xyz, padding, row_step > width.
     n = 7
