@@ -121,8 +121,9 @@ def cloud_fields(msg: PointCloud2, names: Sequence[str]) -> np.ndarray:
             and all(present[n].datatype == PointField.FLOAT32 and present[n].count <= 1
                     and present[n].offset == 4 * i for i, n in enumerate(names))):
         # The fields asked for are the whole point, little-endian float32 in that order (what
-        # the stereo node publishes): the data already is the array; one copy, as the general
-        # path's result owns its memory too (1.6 -> 0.3 ms for a 640 x 480 cloud).
+        # the stereo node publishes): the data already is the array. One copy (the result
+        # owns its memory, as the general path's does) instead of bytes(), the record view's
+        # three strided field copies and their stack.
         out = raw.view('<f4').reshape(msg.height, msg.width, k).astype(np.float32)
         return out if msg.height > 1 else out.reshape(-1, k)
     dtype = _cloud_dtype(msg)
