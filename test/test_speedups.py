@@ -9,7 +9,7 @@ import speedup_reference as ref
 import terrain_perception.fill as fillmod
 from terrain_perception.bench.stereo import _body_pose, _course_scene, render_pair
 from terrain_perception.fill import CONTACT, TerrainFiller
-from terrain_perception.grid import ELEVATION
+from terrain_perception.grid import COST, ELEVATION
 from terrain_perception.ground_plane import GroundPlaneConfig, fit_ground_plane
 from terrain_perception.robot_model import load_robot_model
 from terrain_perception.stereo import StereoConfig, StereoPipeline, floor_disparity_range
@@ -196,7 +196,11 @@ def test_fill_node_pose_conversion_equals_the_previous_code(ros_context, walk):
 def test_fill_kernel_equals_the_numpy_choice_on_a_walk(walk):
     """The compiled fill (TERRAIN_FILL_NUMBA, the default: _fill_kernels.choose_block and
     viewshed_bounds) against the numpy code it replaces: the filler's layers over the whole
-    walk, bitwise (the layers are float32; the float64 fills themselves: the next test)."""
+    walk, bitwise (the layers are float32; the float64 fills themselves: the next test),
+    except the cost: the filler computes it from the float64 heights, which agree only
+    within rounding, so a cost can differ in its last float32 bits (on an AVX-512 EPYC, 625
+    of 90,000 cells by up to 1.5e-8, cancellation near zero included; none on the Xeon the
+    test was written on)."""
     try:
         fillmod.use_compiled_kernels(True)
         new = run_filler(walk, feet_every=3)
@@ -208,7 +212,12 @@ def test_fill_kernel_equals_the_numpy_choice_on_a_walk(walk):
     for (a, ra, na), (b, rb, nb) in zip(new, old):
         assert (ra, na) == (rb, nb)
         for name in a:
-            np.testing.assert_array_equal(a[name], b[name], err_msg=name)
+            if name == COST:
+                np.testing.assert_array_equal(np.isnan(a[name]), np.isnan(b[name]))
+                np.testing.assert_allclose(a[name], b[name], rtol=1e-6, atol=1e-7,
+                                           err_msg=name)
+            else:
+                np.testing.assert_array_equal(a[name], b[name], err_msg=name)
 
 
 
