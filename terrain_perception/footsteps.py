@@ -738,10 +738,32 @@ class FootstepPlanner:
         return ij, inside
 
     # ---- gait selection (paper 002 Fig. 4) -------------------------------------------------
-    def select_gait(self, feet: np.ndarray, wL: float, A: float) -> Tuple[int, str]:
+    def trot_phase(self, feet: np.ndarray, A: float) -> Tuple[tuple, bool]:
+        """Where the stance ``feet`` (4, 3) is in a trot period: ``(pairs, half_done)``, the
+        diagonal pairs in the order they swing next (the pair further behind its nominal
+        places first; ties: ``TROT_PAIRS`` order) and whether a period is half done (one
+        pair ahead of the other by more than ``A/2`` along the heading: it swung, the other
+        has not). Fig. 4 decides the gait once per period, but the plan is remade after every
+        swing, so half the plans start between the two pairs of a period: judged as a new
+        period there, the pair that just swung is out of position, the plan walks, and the
+        crawl's next plan trots again from the wrong pair: the stance then spreads by A every
+        few steps (FROG-I, flat, blind map: LF 0.97 m ahead of LH after 20 s, then a fall)."""
+        kL = self._uv(feet)[0] - self.nom_u
+        mean = [float(np.mean(kL[list(p)])) for p in TROT_PAIRS]
+        lag = 1 if mean[1] < mean[0] else 0
+        pairs = (TROT_PAIRS[lag], TROT_PAIRS[1 - lag])
+        return pairs, mean[1 - lag] - mean[lag] > A / 2.0
+
+    def select_gait(self, feet: np.ndarray, wL: float, A: float,
+                    half_done: bool = False) -> Tuple[int, str]:
         """Fig. 4's test for one period from the feet (4, 3) and the body's along-track position
         ``wL`` [m]: trot when every search area is flat (Shao cost < Threshold) and every foot is
-        in position (``kL - wL < A/2``), else walk. Returns ``(gait, reason)``."""
+        in position (``kL - wL < A/2``), else walk. Returns ``(gait, reason)``.
+
+        ``half_done`` (see :meth:`trot_phase`): the stance is half-way through a trot period,
+        the body half-way (A/2) past where the period began; the test is the one the period
+        had at its start: the pair that swung was A behind where it is, so ``kL - wL < A``
+        for it and ``kL - wL < 0`` for the pair still to swing."""
         if not self.robot.trot:
             return GAIT_WALK, f'{self.robot.name} walks only (robot profile gait.trot)'
         ground = float(np.mean(feet[:, 2]))
@@ -755,8 +777,15 @@ class FootstepPlanner:
         if not flat_all:
             return GAIT_WALK, f'obstacle in the search area of leg {LEG_NAMES[k]}'
         kL = fu - self.nom_u
+        if half_done:
+            pairs, _ = self.trot_phase(feet, A)
+            start = kL.copy()
+            start[list(pairs[0])] += A / 2.0       # still to swing
+            start[list(pairs[1])] -= A / 2.0       # swung by A, the body by A/2 since
+            kL = start
         if np.all(kL - wL < A / 2.0):
-            return GAIT_TROT, 'all search areas flat and feet in position'
+            return GAIT_TROT, ('trot period half done, feet in position' if half_done else
+                               'all search areas flat and feet in position')
         return GAIT_WALK, 'flat, but feet out of position (walk stride rule)'
 
     # ---- main entry --------------------------------------------------------------------------
@@ -1031,10 +1060,11 @@ class FootstepPlanner:
             behind = self._uv(feet)[0] - self.nom_u
             first_leg = min(CRAWL_ORDER, key=lambda k: (round(behind[k], 6),
                                                         CRAWL_ORDER.index(k)))
-        gait, why = self.select_gait(feet, 0.0, A)
+        pairs, half = self.trot_phase(feet, A) if self.robot.trot else (TROT_PAIRS, False)
+        gait, why = self.select_gait(feet, 0.0, A, half)
         plan = None
         if gait == GAIT_TROT:
-            plan = self._plan_trot(feet, yaw, A, remaining)
+            plan = self._plan_trot(feet, yaw, A, remaining, pairs, half)
             if plan is not None:
                 plan.status_text = f'trot: {why}; ' + plan.status_text
             else:
@@ -1046,12 +1076,19 @@ class FootstepPlanner:
         return plan
 
     # ---- trot ------------------------------------------------------------------------------
-    def _plan_trot(self, feet, yaw, A, remaining) -> Optional[FootstepPlan]:
+    def _plan_trot(self, feet, yaw, A, remaining, pairs=TROT_PAIRS,
+                   half: bool = False) -> Optional[FootstepPlan]:
+        """Trot periods of stride ``A`` from ``feet``: the diagonal ``pairs`` in that order
+        (:meth:`trot_phase`); with ``half`` the period under way is finished first (its
+        second pair swings with the body where it is), then whole periods follow, each
+        re-tested by :meth:`select_gait`, the pair that led the period before leading."""
         cfg, g = self.cfg, self.grid
         steps: List[Footstep] = []
         cur = feet.copy()
         wL = 0.0
-        n_periods = max(1, int(np.ceil(cfg.horizon_steps / 2)))
+        n_periods = max(1, int(np.ceil(cfg.horizon_steps / 2))) + int(half)
+        # after a half period the pair that swung in it leads the next ones
+        order = (pairs[1], pairs[0]) if half else tuple(pairs)
         idx = 0
         # A trot step moves a foot by A along the heading, which cannot turn the stance: the
         # first period also turns each pair about the stance centre to the plan's heading
@@ -1061,15 +1098,20 @@ class FootstepPlanner:
         centre = feet[:, :2].mean(axis=0)
         Rturn = np.array([[math.cos(turn), -math.sin(turn)], [math.sin(turn), math.cos(turn)]])
         for period in range(n_periods):
+            if idx >= cfg.horizon_steps:
+                break
             if period > 0:
                 gait, _ = self.select_gait(cur, wL, A)
                 if gait != GAIT_TROT:
                     break
-            wL_new = wL + A
-            # Both pairs swing with the body half-way: feet move from A/2 behind to A/2 ahead
-            # of their nominal place.
-            body_xy = self.origin + (wL + 0.5 * A) * self.hdir
-            for pair in TROT_PAIRS:
+            if period == 0 and half:
+                # the body is already half-way through this period
+                wL_new, body_xy, swing = wL + 0.5 * A, self.origin + wL * self.hdir, pairs[:1]
+            else:
+                # Both pairs swing with the body half-way: feet move from A/2 behind to A/2
+                # ahead of their nominal place.
+                wL_new, body_xy, swing = wL + A, self.origin + (wL + 0.5 * A) * self.hdir, order
+            for pair in swing:
                 if idx >= cfg.horizon_steps:
                     break
                 new = cur.copy()

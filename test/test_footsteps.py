@@ -130,6 +130,39 @@ def test_flat_ground_trots_with_stride_A():
         np.testing.assert_allclose(p[:2] - plan.initial_feet[leg, :2], [A, 0.0], atol=1e-9)
 
 
+def test_replanning_after_every_pair_keeps_trotting_in_alternation():
+    """Receding horizon on flat ground with FROG-I (which trots): the plan is remade after each
+    executed pair, so every other plan starts half-way through a trot period. It must finish
+    that period with the other pair, not judge the pair that just swung out of position and
+    walk: before this, trot and walk plans alternated, each trot began with LF+RH wherever it
+    stood, and the stance spread until the robot fell (blind stones-15cm, seeds 100-109)."""
+    robot = load_robot_model('frog')
+    A = robot.body_move_per_period_m
+    g = GridMap(0.02, (-1.0, -1.5), (300, 150), {'elevation': np.zeros((300, 150), np.float32)})
+    g['cost'] = features.cost_map(g['elevation'], 0.02)
+    planner = fs.FootstepPlanner(robot, fs.PlannerConfig())
+    assert planner.set_map(g) is None
+    feet = np.array(robot.nominal_feet)
+    feet[:, 2] = 0.0
+    nominal_span = float(feet[fs.LF, 0] - feet[fs.LH, 0])
+    swung = []
+    for _ in range(10):
+        body_xy = feet[:, :2].mean(axis=0)     # the controller's body goal: over the feet
+        T = _pose(*body_xy)
+        T[2, 3] = robot.standing_height_m
+        plan = planner.plan(T, np.array([3.0, 0.0]), feet=feet)
+        assert plan.ok and plan.gait == fs.GAIT_TROT, plan.status_text
+        first = [s for s in plan.footsteps if s.step_index == plan.footsteps[0].step_index]
+        swung.append(tuple(sorted(s.leg for s in first)))
+        for s in first:
+            np.testing.assert_allclose(s.position[:2] - feet[s.leg, :2], [A, 0.0], atol=1e-6)
+            feet[s.leg] = s.position
+        for front, hind in ((fs.LF, fs.LH), (fs.RF, fs.RH)):
+            assert abs(feet[front, 0] - feet[hind, 0] - nominal_span) <= A + 1e-6, feet
+    assert swung == [(fs.LF, fs.RH), (fs.RF, fs.LH)] * 5
+    assert feet[:, 0].mean() == pytest.approx(5 * A, abs=1e-6)
+
+
 def test_obstacle_selects_walk_in_crawl_order_and_avoids_edges():
     h = np.zeros((150, 150))
     g0 = _flat()
