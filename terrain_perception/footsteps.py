@@ -31,7 +31,9 @@
   position (``kL - wL < A/2``) the plan trots with stride ``A``; otherwise it walks, choosing in
   each area the foothold of least cost weighted by ``omega = (x - centre)^2 + A`` (which keeps
   footholds off the area borders; on uniform cost it reproduces the paper's walk stride rule
-  ``(2A + wL - kL) / 2``).
+  ``(2A + wL - kL) / 2``). The plan is remade after every swing, so a trot plan often starts
+  half-way through a period (one diagonal pair swung, the other not): the test is then the one
+  of that period's start and the other pair swings first (:meth:`FootstepPlanner.trot_phase`).
 
 Frames: the grid's frame (``map``, z up). Poses are 4x4 ``T_map_base``. Legs are indexed
 ``LF, RF, LH, RH`` = 0..3 (``terrain_msgs/Footstep``). Footstep positions are ground contact
