@@ -1094,6 +1094,8 @@ def cloud_height_normals(points: np.ndarray, resolution_m: float,
     """Normals ``(N, 3)`` of map-frame points ``(N, 3)`` [m] from their own 2.5-D height grid
     (mean z per ``resolution_m`` cell; see :func:`height_map_normals`). Terrain is a height
     field, so this matches PCA normals at a fraction of the cost."""
+    if len(points) == 0:
+        return np.zeros((0, 3))
     lo = points[:, :2].min(axis=0)
     k = _kernels
     if (k is not None and points.dtype == np.float64 and points.ndim == 2
@@ -2142,6 +2144,11 @@ class IcpMapper:
     def _fuse_model(self, model_map: np.ndarray, T_map_camera: np.ndarray,
                     T_map_base: np.ndarray, stamp_s: float) -> None:
         c = self.config
+        if len(model_map) == 0:
+            # nothing of this capture may enter the model (a tumbling camera's view): the
+            # model stays as it was
+            self.counters['captures_without_model_points'] += 1
+            return
         if c.coarse_fusion == 'weighted':
             # the voxels of the model's own fixed grid (Open3D's grid starts at the cloud's
             # corner: its voxels would straddle the model's)

@@ -662,6 +662,23 @@ def test_depth_weights_follow_the_stereo_noise_model():
     assert f.heights()[1, 1] < 0.101 and f.s['n'][1, 1] == 5  # the plain mean: 0.132
 
 
+def test_a_capture_with_no_point_for_the_model_is_fused_without_one(terrain):
+    """A capture none of whose points may enter the coarse model (a tumbling robot's camera
+    sees only ground above its body or beyond the ICP range: stones-15cm blind seed 104 at
+    4490a9f) leaves the model as it was; the mapper raised on the empty cloud and the node
+    died. The capture's pose is still recorded."""
+    g, scene = terrain
+    m = mp.IcpMapper(CONFIG, T_BC)
+    fine, src = m.prepare(cloud_at(scene, T0))
+    m.fuse(fine, src, T0 @ T_BC, T0, 0.0)
+    model = m.coarse_points()
+    assert len(model) > 100
+    far = np.array([[0.0, 0.0, 5.0], [0.1, 0.0, 6.0]])     # camera frame, past every range
+    m.fuse(far, far, T1 @ T_BC, T1, 1.0)
+    np.testing.assert_array_equal(m.coarse_points(), model)
+    assert len(m.capture_poses()[0]) == 2
+
+
 def test_points_seen_through_known_ground_are_not_fused(terrain):
     """Stereo mismatches far below the terrain. After a first capture, a second one holds a
     block of true points and a patch of points pushed 30 cm down along their rays (as a
