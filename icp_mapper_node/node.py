@@ -299,7 +299,15 @@ class IcpMapperNode(Node):
         """The coarse model's part of the last fusion (``IcpMapper.finish_model``) and, when
         due, ``/map/coarse`` with that capture's stamp."""
         wait, self._model_wait = self._model_wait, None
-        self.mapper.finish_model()
+        try:
+            self.mapper.finish_model()
+        except (ValueError, RuntimeError, IndexError) as exc:
+            # One capture's model update must not take the node down: the pending part is
+            # dropped (the model keeps every earlier capture), the next capture fuses anew.
+            self.counters.bump('model_update_failed', f'coarse model update of the last '
+                               f'capture failed and was skipped: {type(exc).__name__}: {exc}',
+                               self.get_logger().error)
+            return
         if wait is not None and wait[3]:
             self.pub_coarse.publish(xyz_to_cloud(self.mapper.coarse_points(),
                                                  self.node_cfg.map_frame, wait[1]))

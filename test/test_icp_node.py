@@ -227,6 +227,41 @@ def test_node_bad_input_is_counted_and_leaves_the_map_unchanged(ros_context, exe
     assert spin_until(executor, lambda: len(h.fine) > n_fine, 10.0)
 
 
+def test_a_failed_model_update_is_counted_and_the_node_goes_on(ros_context, executor, world):
+    """An error in one capture's coarse-model update (stones-15cm blind seed 104: a tumbling
+    camera left no point for the model, numpy raised, the node died and was respawned with
+    an empty map) is counted and logged; the next capture is mapped as usual."""
+    g, scene, T_bc = world
+    h = Harness(ros_context, executor)
+    run_walk(h, scene, T_bc, n=2)
+    real = h.node.mapper.finish_model
+    calls = []
+
+    def broken(build_tree=True):
+        calls.append(build_tree)
+        if len(calls) == 1:
+            h.node.mapper._pending_model = None
+            raise ValueError('zero-size array to reduction operation minimum')
+        return real(build_tree)
+
+    h.node.mapper.finish_model = broken
+    try:
+        n_fine = len(h.fine)
+        h.odom(2.5, truth_pose(2))
+        h.odom(3.5, truth_pose(2))
+        spin_until(executor, lambda: h.node.odom.latest[0] == 3.5, 3.0)
+        h.cloud(cloud_msg(scene, truth_pose(2), T_bc, 3.0))
+        assert spin_until(executor, lambda: h.node.counters['model_update_failed'] >= 1, 10.0)
+        assert 'ValueError' in h.node.counters.last_reason['model_update_failed']
+        h.odom(4.5, truth_pose(3))
+        spin_until(executor, lambda: h.node.odom.latest[0] == 4.5, 3.0)
+        h.cloud(cloud_msg(scene, truth_pose(3), T_bc, 4.0))
+        assert spin_until(executor, lambda: len(h.fine) >= n_fine + 2, 10.0)
+        assert len(h.node.mapper.coarse_points()) > 100
+    finally:
+        h.node.mapper.finish_model = real
+
+
 def test_node_does_not_map_the_robots_own_legs(ros_context, executor, world):
     """A cloud that also holds points on the front shanks (as the robot's camera sees them):
     with the legs' joint states the node maps the terrain only; the same capture without
