@@ -291,6 +291,64 @@ def estimate_offsets(d: RunData, t: np.ndarray) -> np.ndarray:
                      np.linalg.inv(interp_poses(te, Te, t)))
 
 
+def drift_windows(d: RunData, window_s: float = 10.0) -> List[dict]:
+    """Where the robot's position estimate (:func:`estimated_path`) gains its error, window by
+    window of ``window_s`` simulated seconds over the ground truth's span.
+
+    The error ``e = p_est - p_true`` is split in the true heading's frame (``along`` the body's
+    x, ``across`` it) at each window's end, and its change over the window into what dead
+    reckoning added with the ICP correction held at the window's start (``dr_*``: the odometry's
+    displacement turned by that correction minus the true displacement) and what the
+    corrections received within the window added (``icp_*``: the rest). ``dr_scale`` is the
+    odometry's path length over the true one within the window (1 = exact; > 1 overstates).
+    Rows: ``t0``, ``t1`` [s], ``x`` [m] (true, at ``t1``), ``err_along``, ``err_across``,
+    ``err_z`` [m], ``yaw_err_deg``, ``dr_along``, ``dr_across``, ``icp_along``, ``icp_across``
+    [m], ``dr_scale``, ``corrections`` (received in the window). Empty without ground truth or
+    dead reckoning. Raises ValueError for a window that is not positive and finite."""
+    if not (math.isfinite(window_s) and window_s > 0.0):
+        raise ValueError(f'window_s must be positive and finite, got {window_s!r}')
+    if not len(d.gt_t) or not len(d.dr_t):
+        return []
+    te, Te, _ = estimated_path(d)
+    edges = np.arange(max(d.gt_t[0], d.dr_t[0]), min(d.gt_t[-1], d.dr_t[-1]) + 1e-9, window_s)
+    if len(edges) < 2:
+        return []
+    G = interp_poses(d.gt_t, d.gt_T, edges)
+    E = interp_poses(te, Te, edges)
+    D = interp_poses(d.dr_t, d.dr_T, edges)
+    eye = np.eye(4)
+
+    def corr_at(t):
+        if not len(d.corr_t):
+            return eye
+        k = np.searchsorted(d.corr_t, t, side='right') - 1
+        return d.corr_T[k] if k >= 0 else eye
+
+    rows = []
+    for i in range(1, len(edges)):
+        t0, t1 = float(edges[i - 1]), float(edges[i])
+        yaw = math.atan2(G[i, 1, 0], G[i, 0, 0])
+        fwd = np.array([math.cos(yaw), math.sin(yaw)])
+        left = np.array([-fwd[1], fwd[0]])
+        e0 = E[i - 1, :3, 3] - G[i - 1, :3, 3]
+        e1 = E[i, :3, 3] - G[i, :3, 3]
+        dr = corr_at(t0)[:3, :3] @ (D[i, :3, 3] - D[i - 1, :3, 3]) - (G[i, :3, 3] - G[i - 1, :3, 3])
+        icp = (e1 - e0) - dr
+        true_len = float(np.linalg.norm(G[i, :2, 3] - G[i - 1, :2, 3]))
+        n_corr = int(np.sum((d.corr_t > t0) & (d.corr_t <= t1))) if len(d.corr_t) else 0
+        rows.append({
+            't0': t0, 't1': t1, 'x': float(G[i, 0, 3]),
+            'err_along': float(e1[:2] @ fwd), 'err_across': float(e1[:2] @ left),
+            'err_z': float(e1[2]),
+            'yaw_err_deg': float(np.degrees(heading_error_rad(E[i:i + 1], G[i:i + 1])[0])),
+            'dr_along': float(dr[:2] @ fwd), 'dr_across': float(dr[:2] @ left),
+            'icp_along': float(icp[:2] @ fwd), 'icp_across': float(icp[:2] @ left),
+            'dr_scale': (float(np.linalg.norm(D[i, :2, 3] - D[i - 1, :2, 3])) / true_len
+                         if true_len > 1e-3 else None),
+            'corrections': n_corr})
+    return rows
+
+
 def cell_offsets(d: RunData, grid: GridMap, mask: np.ndarray) -> np.ndarray:
     """``(nx, ny, 4, 4)``: for each ``mask`` cell of ``grid``, the estimate error
     (:func:`estimate_offsets`) at the stamp the cell was last seen (layer ``last_seen``): its

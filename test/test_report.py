@@ -425,3 +425,111 @@ def test_counters_log_at_several_severities_from_one_node(ros_context):
         assert c['bad_library'] == c['bad_grid'] == c['served'] == 2
     finally:
         node.destroy_node()
+
+
+def _drift_run():
+    """A walk along y (heading +90 deg) at 1 cm/s for 20 s; dead reckoning overstates every
+    step by 4 %; one ICP correction at t = 15 s takes 3 mm off the estimate along the heading."""
+    d = RunData(CourseInfo('rocks-6cm', 0, 0.4, 1.0, 1.75, 2.15), 'littledog')
+    t = np.arange(0.0, 20.0 + 1e-9, 0.1)
+    d.gt_t = t
+    d.gt_T = np.stack([_pose(0.0, 0.01 * s, 90.0) for s in t])
+    d.dr_t = t
+    d.dr_T = np.stack([_pose(0.0, 0.0104 * s, 90.0) for s in t])
+    shift = np.eye(4)
+    shift[1, 3] = -0.003
+    d.corr_t, d.corr_T = np.array([15.0]), shift[None]
+    return d
+
+
+def test_drift_windows_split_the_estimate_error_into_odometry_and_icp():
+    from terrain_ros.report import drift_windows
+    rows = drift_windows(_drift_run(), 10.0)
+    assert [(r['t0'], r['t1']) for r in rows] == [(0.0, 10.0), (10.0, 20.0)]
+    a, b = rows
+    # the heading is +y: "along" is y, "across" is -x
+    assert a['err_along'] == pytest.approx(0.004, abs=1e-9)
+    assert a['dr_along'] == pytest.approx(0.004, abs=1e-9)
+    assert a['icp_along'] == pytest.approx(0.0, abs=1e-9)
+    assert a['dr_scale'] == pytest.approx(1.04, abs=1e-9)
+    assert a['corrections'] == 0 and a['x'] == pytest.approx(0.0)
+    assert b['err_along'] == pytest.approx(0.008 - 0.003, abs=1e-9)
+    assert b['dr_along'] == pytest.approx(0.004, abs=1e-9)
+    assert b['icp_along'] == pytest.approx(-0.003, abs=1e-9)
+    assert b['corrections'] == 1
+    for r in rows:
+        assert r['err_across'] == pytest.approx(0.0, abs=1e-9)
+        assert r['yaw_err_deg'] == pytest.approx(0.0, abs=1e-9)
+    with pytest.raises(ValueError, match='window_s'):
+        drift_windows(_drift_run(), 0.0)
+    assert drift_windows(RunData(CourseInfo('x', 0, 0, 0, 0, 0), 'littledog'), 10.0) == []
+
+
+def test_the_drift_tool_reads_the_windows_from_a_bag(tmp_path):
+    """The same run written as a bag (ground truth, odometry, one correction received at
+    15 s on the recorded /clock): the tool prints and writes the same windows."""
+    import json
+    import subprocess
+    import sys
+
+    from rosbags.rosbag2 import StoragePlugin, Writer
+    from rosbags.typesys import Stores, get_typestore
+    from scipy.spatial.transform import Rotation
+    store = get_typestore(Stores.ROS2_JAZZY)
+    T = store.types
+    d = _drift_run()
+    wall0 = 1_000_000_000_000
+
+    def stamp(s):
+        return T['builtin_interfaces/msg/Time'](sec=int(s), nanosec=int(round((s % 1) * 1e9)))
+
+    def pose(M):
+        q = Rotation.from_matrix(M[:3, :3]).as_quat()
+        return T['geometry_msgs/msg/Pose'](
+            position=T['geometry_msgs/msg/Point'](x=M[0, 3], y=M[1, 3], z=M[2, 3]),
+            orientation=T['geometry_msgs/msg/Quaternion'](x=q[0], y=q[1], z=q[2], w=q[3]))
+
+    def odom(s, M, frame):
+        cov = np.zeros(36)
+        return T['nav_msgs/msg/Odometry'](
+            header=T['std_msgs/msg/Header'](stamp=stamp(s), frame_id=frame),
+            child_frame_id='base_link',
+            pose=T['geometry_msgs/msg/PoseWithCovariance'](pose=pose(M), covariance=cov),
+            twist=T['geometry_msgs/msg/TwistWithCovariance'](
+                twist=T['geometry_msgs/msg/Twist'](linear=T['geometry_msgs/msg/Vector3'](
+                    x=0.0, y=0.0, z=0.0), angular=T['geometry_msgs/msg/Vector3'](
+                    x=0.0, y=0.0, z=0.0)), covariance=cov))
+    bag = tmp_path / 'bag'
+    with Writer(bag, version=9, storage_plugin=StoragePlugin.MCAP) as w:
+        c_gt = w.add_connection('/ground_truth/odom', 'nav_msgs/msg/Odometry', typestore=store)
+        c_dr = w.add_connection('/odom/dead_reckoning', 'nav_msgs/msg/Odometry',
+                                typestore=store)
+        c_clk = w.add_connection('/clock', 'rosgraph_msgs/msg/Clock', typestore=store)
+        c_cor = w.add_connection('/icp/correction', 'geometry_msgs/msg/PoseStamped',
+                                 typestore=store)
+        for k, s in enumerate(d.gt_t):
+            wall = wall0 + int(s * 1e9) * 3          # the recorder's clock: 3x slower
+            w.write(c_clk, wall, store.serialize_cdr(
+                T['rosgraph_msgs/msg/Clock'](clock=stamp(s)), 'rosgraph_msgs/msg/Clock'))
+            w.write(c_gt, wall + 1, store.serialize_cdr(odom(s, d.gt_T[k], 'map'),
+                                                        'nav_msgs/msg/Odometry'))
+            w.write(c_dr, wall + 2, store.serialize_cdr(odom(s, d.dr_T[k], 'odom'),
+                                                        'nav_msgs/msg/Odometry'))
+            if abs(s - 15.0) < 1e-9:
+                # stamped with a capture of the first window; received (logged) in the second
+                w.write(c_cor, wall + 3, store.serialize_cdr(T['geometry_msgs/msg/PoseStamped'](
+                    header=T['std_msgs/msg/Header'](stamp=stamp(9.0), frame_id='map'),
+                    pose=pose(d.corr_T[0])), 'geometry_msgs/msg/PoseStamped'))
+    out = tmp_path / 'drift.json'
+    res = subprocess.run([sys.executable, '-m', 'terrain_ros.tools.drift', str(bag), '--json',
+                          str(out)], capture_output=True, text=True, timeout=120)
+    assert res.returncode == 0, res.stderr
+    rows = json.loads(out.read_text())
+    assert len(rows) == 2
+    assert rows[1]['icp_along'] == pytest.approx(-0.003, abs=1e-6)
+    assert rows[1]['err_along'] == pytest.approx(0.005, abs=1e-6)
+    assert rows[0]['dr_scale'] == pytest.approx(1.04, abs=1e-6)
+    assert '10.0-  20.0' in res.stdout
+    res = subprocess.run([sys.executable, '-m', 'terrain_ros.tools.drift', str(tmp_path / 'no')],
+                         capture_output=True, text=True, timeout=120)
+    assert res.returncode == 1 and 'does not exist' in res.stderr
