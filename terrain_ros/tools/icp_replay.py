@@ -66,7 +66,7 @@ def parse_slip(text: str) -> tuple:
     return out
 
 
-def replay(bag: Path, params: list, slip: tuple = None) -> dict:
+def replay(bag: Path, params: list, slip: tuple = None, window_s: float = None) -> dict:
     import rclpy
     from rclpy.serialization import deserialize_message
     from terrain_ros.conversions import pose_to_matrix, stamp_to_sec
@@ -94,11 +94,12 @@ def replay(bag: Path, params: list, slip: tuple = None) -> dict:
     try:
         from icp_mapper_node.node import IcpMapperNode
         node = IcpMapperNode()
-        update, log = node.mapper.update, []
+        update, log, corr = node.mapper.update, [], []
 
         def logged(cloud, T_odom_base, t, **kw):
             res = update(cloud, T_odom_base, t, **kw)
             log.append((t, res.accepted, res.T_map_base.copy()))
+            corr.append((t, res.T_map_odom.copy(), res.n_degenerate))
             return res
         node.mapper.update = logged
         on_odom = node._on_odom
@@ -112,7 +113,7 @@ def replay(bag: Path, params: list, slip: tuple = None) -> dict:
         callbacks = {'/odom/dead_reckoning': on_odom,
                      '/joint_states': node._on_joint_state, '/imu/data': node._on_imu,
                      '/stereo/points_coarse': node._on_coarse, '/stereo/points': node._on_cloud}
-        gt_t, gt_T, terrain = [], [], None
+        gt_t, gt_T, terrain, dr = [], [], None, []
         conns = [c for c in reader.connections if c.topic in INPUTS or c.topic in
                  (TRUTH, TERRAIN)]
         for c, _, raw in reader.messages(connections=conns):
@@ -125,7 +126,13 @@ def replay(bag: Path, params: list, slip: tuple = None) -> dict:
                 gt_t.append(stamp_to_sec(m.header.stamp))
                 gt_T.append(pose_to_matrix(m.pose.pose))
                 continue
-            callbacks[c.topic](deserialize_message(bytes(raw), message_class(INPUTS[c.topic])))
+            m = deserialize_message(bytes(raw), message_class(INPUTS[c.topic]))
+            callbacks[c.topic](m)
+            if c.topic == '/odom/dead_reckoning' and window_s is not None:
+                try:    # after the callback: with --slip, the odometry the node was given
+                    dr.append((stamp_to_sec(m.header.stamp), pose_to_matrix(m.pose.pose)))
+                except ValueError:
+                    pass
         counters = dict(node.mapper.counters)
         fine = node.mapper.fine_grid(node.node_cfg.map_frame) if log else None
         node.destroy_node()
@@ -142,6 +149,10 @@ def replay(bag: Path, params: list, slip: tuple = None) -> dict:
         pos_err.append(float(np.hypot(*(T[:2, 3] - G[:2, 3]))))
     y, p = np.asarray(yaw_err), np.asarray(pos_err)
     extra = {} if slip is None else _after_slip(slip, [t for t, _, _ in log], p)
+    if window_s is not None:
+        extra['drift'] = _drift(gt_t, gt_T, dr, corr, window_s)
+    nd = np.asarray([n for _, _, n in corr])
+    extra['captures_with_degenerate_direction'] = int(np.sum(nd > 0))
     return {**extra, 'captures': len(log), 'accepted': int(sum(a for _, a, _ in log)),
             'yaw_err_deg_rms': float(np.sqrt(np.mean(y ** 2))), 'yaw_err_deg_max': float(y.max()),
             'yaw_err_deg_final': float(y[-1]),
@@ -149,7 +160,9 @@ def replay(bag: Path, params: list, slip: tuple = None) -> dict:
             'pos_err_m_final': float(p[-1]), 'counters': counters, 'params': list(params),
             'robot': robot, 'series': {'t_s': [float(t) for t, _, _ in log],
                                        'yaw_err_deg': [float(v) for v in y],
-                                       'pos_err_m': [float(v) for v in p]},
+                                       'pos_err_m': [float(v) for v in p],
+                                       'accepted': [bool(a) for _, a, _ in log],
+                                       'n_degenerate': [int(n) for _, _, n in corr]},
             **_map_figures(fine, terrain)}
 
 
@@ -164,6 +177,20 @@ def _after_slip(slip: tuple, t: list, pos_err: np.ndarray) -> dict:
     return {'slip': list(slip), 'captures_after_slip': int(after.sum()),
             'pos_err_m_rms_after_slip': float(np.sqrt(np.mean(p ** 2))),
             'captures_to_recover': recover, 'recovered_m': RECOVERED_M}
+
+
+def _drift(gt_t, gt_T, dr: list, corr: list, window_s: float) -> list:
+    """The replayed estimate's error, window by window (``terrain_ros.report.drift_windows``):
+    the bag's dead reckoning re-anchored by the replayed corrections at their captures' stamps."""
+    from terrain_ros.report import CourseInfo, RunData, drift_windows
+    d = RunData(course=CourseInfo('', 0, 0.0, 0.0, 0.0, 0.0), robot='')
+    d.gt_t, d.gt_T = np.asarray(gt_t, float), np.asarray(gt_T, float).reshape(-1, 4, 4)
+    if dr:
+        d.dr_t = np.asarray([t for t, _ in dr])
+        d.dr_T = np.asarray([T for _, T in dr])
+    d.corr_t = np.asarray([t for t, _, _ in corr])
+    d.corr_T = np.asarray([T for _, T, _ in corr]).reshape(-1, 4, 4)
+    return drift_windows(d, window_s)
 
 
 def _map_figures(fine, terrain_msg) -> dict:
@@ -186,6 +213,10 @@ def main(argv=None) -> int:
     ap.add_argument('--param', action='append', default=[], metavar='NAME:=VALUE',
                     help='icp_mapper parameter override (repeatable)')
     ap.add_argument('--json', type=Path, default=None, help='write the figures here')
+    ap.add_argument('--window', type=float, default=None, metavar='S',
+                    help='also print where the estimate (dead reckoning re-anchored by the '
+                         'replayed corrections) gained its error, every S simulated seconds '
+                         '(as terrain_ros.tools.drift does for the recorded run)')
     ap.add_argument('--slip', default=None, metavar='T:DX,DY',
                     help='from bag time T [s] on, move the dead reckoning by (-DX, -DY) [m]: '
                          'a slip the legs did not see')
@@ -196,7 +227,11 @@ def main(argv=None) -> int:
             if ':=' not in p:
                 raise ToolError(f'--param {p!r}: expected NAME:=VALUE')
         slip = None if args.slip is None else parse_slip(args.slip)
-        out = replay(args.bag, args.param, slip)
+        if args.window is not None and not (np.isfinite(args.window) and args.window > 0):
+            raise ToolError(f'--window {args.window}: must be a positive number of seconds')
+        out = replay(args.bag, args.param, slip, args.window)
+    except ValueError as exc:     # a parameter the node refused (name, type, range)
+        return fail(PROG, str(exc))
     except ToolError as exc:
         return fail(PROG, str(exc))
     print(f'{out["captures"]} captures, {out["accepted"]} accepted; yaw error RMS '
@@ -214,6 +249,10 @@ def main(argv=None) -> int:
         print(f'final fine map: {out["map_cells"]} observed cells, height RMSE '
               f'{1000 * out["map_rmse_m"]:.1f} mm, {out["map_cells_above_5cm"]} cells > 5 cm '
               f'above the terrain, {out["map_cells_below_5cm"]} > 5 cm below')
+    print(f'{out["captures_with_degenerate_direction"]} captures kept a direction at the prior')
+    if out.get('drift'):
+        from terrain_ros.tools.drift import format_rows
+        print(format_rows(out['drift']))
     if args.json is not None:
         args.json.write_text(json.dumps(out, indent=2, default=float))
     return 0
