@@ -415,6 +415,8 @@ class IcpMapperNode(Node):
         # the IMU's estimated yaw drift [deg/s] (a gyro bias; see imu_yaw_drift_window_s)
         self.counters.counts['mapper_imu_yaw_drift_deg_s'] = round(
             self.mapper.imu_yaw_drift_deg_s, 4)
+        # the factor applied to dead reckoning's steps in the prior (odometry_scale_window_m)
+        self.counters.counts['mapper_odometry_scale'] = round(self.mapper.odometry_scale, 4)
         self.counters.publish()
 
 

@@ -1237,3 +1237,74 @@ def test_a_walk_aligned_with_the_model_index_equals_the_kdtree_walk(terrain, mon
     ga, gb = m_new.fine_grid(), m_old.fine_grid()
     for name in ga.layers:
         np.testing.assert_array_equal(ga[name], gb[name])
+
+
+def _bumps_then_flat(edge_x=1.2):
+    """bumpy() over x < edge_x - 0.1, fading to a level floor at edge_x and beyond."""
+    g = bumpy(shape=(600, 400))
+    xs, ys = g.cell_centers()
+    X = np.meshgrid(xs, ys, indexing='ij')[0]
+    g[ELEVATION] = g[ELEVATION] * np.clip((edge_x - X) / 0.1, 0.0, 1.0)
+    return rc.HeightFieldScene(g)
+
+
+def _overstating_walk(scene, config, stride=1.05, n=91, step_m=0.02, seed=7):
+    """A walk along x whose odometry overstates every step by ``stride``; stereo-like depth
+    noise. Returns the mapper and its updates with the true x of each capture."""
+    rng = np.random.default_rng(seed)
+    fb = CAM.fx * 0.03
+    m = mp.IcpMapper(config, T_BC, fb)
+    ups = []
+    for k in range(n):
+        x = step_m * k
+        T = make_T(np.eye(3), [x, 0.0, 0.2])
+        u = m.update(stereo_noise(cloud_at(scene, T), fb, config.disparity_sigma_px, rng),
+                     make_T(np.eye(3), [stride * x, 0.0, 0.2]), float(k))
+        ups.append((x, u))
+    return m, ups
+
+
+def test_the_odometry_scale_learnt_on_bumps_carries_the_prior_across_flat_ground():
+    """Dead reckoning overstates every step by 5 % (it follows the commanded body path; the
+    feet lag it). While the bumps are in view ICP measures x and the mapper learns the scale
+    (1 / 1.05); once the view is level (x, y and yaw kept at the prior from x ~ 0.8 m) the
+    prior carries the walk on at that scale: the estimate stays within millimetres where,
+    with the scale off, it runs 5 % of the flat walk (~50 mm over 1 m) ahead."""
+    scene = _bumps_then_flat()
+    cfg = dataclasses.replace(CONFIG, disparity_sigma_px=0.01)
+    m, ups = _overstating_walk(scene, cfg)
+    assert all(u.accepted for _, u in ups), [u.reason for _, u in ups]
+    flat = [(x, u) for x, u in ups if x >= 0.85]
+    assert len(flat) > 40 and all(u.n_degenerate == 3 for _, u in flat), \
+        [u.n_degenerate for _, u in flat]
+    assert m.odometry_scale == pytest.approx(1.0 / 1.05, rel=0.01)
+    err = [abs(u.T_map_base[0, 3] - x) for x, u in flat]
+    assert max(err) < 0.006, err
+    off, ups_off = _overstating_walk(scene, dataclasses.replace(cfg, odometry_scale_window_m=0.0))
+    assert off.odometry_scale == 1.0
+    err_off = abs(ups_off[-1][1].T_map_base[0, 3] - ups_off[-1][0])
+    assert err_off > 0.04, err_off
+
+
+def test_the_scale_counts_only_captures_whose_position_icp_measured_along_the_step():
+    """``_note_scale`` by hand: the map's origin is the anchor; a capture 0.5 m on whose
+    constrained directions hold x (the step) adds the step; one whose basis holds only z,
+    roll and pitch (level ground) adds nothing and leaves the anchor; below
+    odometry_scale_min_m nothing is applied; the scale is clipped to 1 +- max_error."""
+    cfg = dataclasses.replace(CONFIG, odometry_scale_min_m=0.3, odometry_scale_max_error=0.1)
+    m = mp.IcpMapper(cfg, T_BC)
+    at = lambda x: make_T(np.eye(3), [x, 0.0, 0.2])
+    m._note_scale(at(0.0), at(0.0), None)
+    level = np.zeros((6, 3))
+    level[0, 0] = level[1, 1] = level[5, 2] = 1.0       # roll, pitch (x L), z
+    m._note_scale(at(0.2), at(0.25), level)             # not measured along x: ignored
+    assert m._scale_odom_m == 0.0 and m.odometry_scale == 1.0
+    m._note_scale(at(0.19), at(0.2), np.eye(6)[:, [0, 1, 3, 5]])   # x constrained, not y
+    assert m._scale_odom_m == pytest.approx(0.2)
+    assert m.odometry_scale == 1.0                      # 0.2 m < odometry_scale_min_m
+    m._note_scale(at(0.38), at(0.4), None)
+    w = np.exp(-0.2 / cfg.odometry_scale_window_m)
+    assert m._scale_odom_m == pytest.approx(w * 0.2 + 0.2)
+    assert m.odometry_scale == pytest.approx((w * 0.19 + 0.19) / (w * 0.2 + 0.2))
+    m._note_scale(at(1.0), at(2.0), None)               # 50 % over: clipped
+    assert m.odometry_scale == pytest.approx(0.9)
