@@ -2041,7 +2041,9 @@ class IcpMapper:
             self._note_yaw_correction(float(stamp_s), yaw_of(T_base[:3, :3] @ R_imu_prior.T),
                                       n_degenerate == 0)
         self._accept(T_base, T_odom_base, attitude)
-        if not confirmed and not disturbed:
+        if not confirmed and not disturbed and (n_degenerate == 0 or observed is not None):
+            # (Open3D's solver reports how many directions it kept, not which: such a
+            # capture's position is not taken as measured along the step)
             self._note_scale(T_base, T_odom_base, None if n_degenerate == 0 else observed)
         if stamp_s is not None:
             self._accepted_stamp = float(stamp_s)

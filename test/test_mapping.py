@@ -1308,3 +1308,16 @@ def test_the_scale_counts_only_captures_whose_position_icp_measured_along_the_st
     assert m.odometry_scale == pytest.approx((w * 0.19 + 0.19) / (w * 0.2 + 0.2))
     m._note_scale(at(1.0), at(2.0), None)               # 50 % over: clipped
     assert m.odometry_scale == pytest.approx(0.9)
+
+
+def test_open3ds_solver_does_not_teach_the_scale_on_level_ground():
+    """Open3D's ICP (``icp_solver: open3d``) reports how many directions it kept at the prior,
+    not which: on level ground (x, y and yaw kept) its captures add nothing to the scale."""
+    scene = flat_scene()
+    m = mp.IcpMapper(dataclasses.replace(CONFIG, icp_solver='open3d'), T_BC)
+    for k in range(4):
+        T = make_T(np.eye(3), [0.02 * k, 0.0, 0.2])
+        u = m.update(cloud_at(scene, T), make_T(np.eye(3), [0.021 * k, 0.0, 0.2]), float(k))
+        assert u.accepted
+    assert u.n_degenerate == 3
+    assert m._scale_odom_m == 0.0 and m.odometry_scale == 1.0
