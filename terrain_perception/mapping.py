@@ -255,9 +255,9 @@ class MapperConfig:
     odometry_scale_window_m: float = param(
         1.0, 'scale the dead reckoning\'s horizontal step in the prior by how far ICP found '
         'the body to move per metre of odometry over about this many metres of walking: '
-        'between captures whose geometry constrained every direction (their positions are '
-        'measurements), the ICP displacement along the odometry\'s, summed with a forgetting '
-        'factor exp(-step / window), over the odometry\'s length. Dead reckoning follows the '
+        'between captures whose constrained directions hold the step (their positions along '
+        'it are measurements), the ICP displacement along the odometry\'s, summed with a '
+        'forgetting factor exp(-step / window), over the odometry\'s length. Dead reckoning follows the '
         'commanded trajectory and the feet lag it (FROG-I stones seed 104: 2-3 % too far), '
         'which ICP does not see where the view is flat (x, y and yaw kept at the prior: '
         '25 mm along x over 1.3 m past the stones); 0 = off', 0.0, 1e6)
@@ -1608,7 +1608,7 @@ class IcpMapper:
         self._last_stamp = -np.inf
         # the odometry's scale (see odometry_scale_window_m): T_odom_base at the last
         # accepted capture (the prior's step starts there), (odometry position, map position)
-        # at the last accepted capture that constrained every direction, and the forgetting-
+        # at the last accepted capture ICP measured along the step (_note_scale), the forgetting-
         # weighted sums of ICP's displacement along the odometry's and of the odometry's length
         self._last_accepted_odom: Optional[np.ndarray] = None
         self._scale_anchor: Optional[Tuple[np.ndarray, np.ndarray]] = None

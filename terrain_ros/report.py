@@ -300,7 +300,8 @@ def drift_windows(d: RunData, window_s: float = 10.0) -> List[dict]:
     reckoning added with the ICP correction held at the window's start (``dr_*``: the odometry's
     displacement turned by that correction minus the true displacement) and what the
     corrections received within the window added (``icp_*``: the rest). ``dr_scale`` is the
-    odometry's path length over the true one within the window (1 = exact; > 1 overstates).
+    odometry's displacement over the true one across the window (1 = exact; > 1 overstates;
+    None when the body moved less than 1 mm).
     Rows: ``t0``, ``t1`` [s], ``x`` [m] (true, at ``t1``), ``err_along``, ``err_across``,
     ``err_z`` [m], ``yaw_err_deg``, ``dr_along``, ``dr_across``, ``icp_along``, ``icp_across``
     [m], ``dr_scale``, ``corrections`` (received in the window). Empty without ground truth or
@@ -316,13 +317,11 @@ def drift_windows(d: RunData, window_s: float = 10.0) -> List[dict]:
     G = interp_poses(d.gt_t, d.gt_T, edges)
     E = interp_poses(te, Te, edges)
     D = interp_poses(d.dr_t, d.dr_T, edges)
-    eye = np.eye(4)
-
-    def corr_at(t):
-        if not len(d.corr_t):
-            return eye
-        k = np.searchsorted(d.corr_t, t, side='right') - 1
-        return d.corr_T[k] if k >= 0 else eye
+    # the correction in force at each window's start (identity before the first)
+    R0 = np.tile(np.eye(3), (len(edges), 1, 1))
+    if len(d.corr_t):
+        k = np.searchsorted(d.corr_t, edges, side='right') - 1
+        R0[k >= 0] = d.corr_T[k[k >= 0], :3, :3]
 
     rows = []
     for i in range(1, len(edges)):
@@ -332,7 +331,7 @@ def drift_windows(d: RunData, window_s: float = 10.0) -> List[dict]:
         left = np.array([-fwd[1], fwd[0]])
         e0 = E[i - 1, :3, 3] - G[i - 1, :3, 3]
         e1 = E[i, :3, 3] - G[i, :3, 3]
-        dr = corr_at(t0)[:3, :3] @ (D[i, :3, 3] - D[i - 1, :3, 3]) - (G[i, :3, 3] - G[i - 1, :3, 3])
+        dr = R0[i - 1] @ (D[i, :3, 3] - D[i - 1, :3, 3]) - (G[i, :3, 3] - G[i - 1, :3, 3])
         icp = (e1 - e0) - dr
         true_len = float(np.linalg.norm(G[i, :2, 3] - G[i - 1, :2, 3]))
         n_corr = int(np.sum((d.corr_t > t0) & (d.corr_t <= t1))) if len(d.corr_t) else 0
